@@ -1,0 +1,132 @@
+"""The validated application config: one model per section, YAML file + TERRASLAM_* overrides.
+
+Sections: camera, slam, gis, alignment, mavlink, switching, supervisor, logging. Each package owns
+its section's model (slam/config.py, gis/config.py, mavlink_bridge/config.py); this module owns
+camera/supervisor/logging and the root.
+
+Environment overrides: ``TERRASLAM_<SECTION>__<KEY>=value`` (double underscore between levels),
+e.g. ``TERRASLAM_MAVLINK__CONNECT=/dev/ttyTHS1``. Values are parsed as YAML scalars.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from gis.config import AlignmentConfig, GisConfig
+from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
+from slam.config import SlamConfig
+
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.yaml"
+ENV_PREFIX = "TERRASLAM_"
+
+
+class CameraConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    source: str = Field("sim", description="'sim', V4L2 index or /dev/videoN, video file, image folder, rtsp:// URL or GStreamer pipeline")
+    calibration: Path | None = Field(None, description="OpenCV-style YAML with K, distortion, size")
+    width_px: int = Field(640, ge=16, le=8192)
+    height_px: int = Field(480, ge=16, le=8192)
+    fps: float = Field(30.0, gt=0, le=1000)
+    fourcc: str | None = Field(None, min_length=4, max_length=4, description="V4L2 pixel format, e.g. MJPG")
+    T_body_cam: list[list[float]] | None = Field(None, description="4x4 camera-to-body (FRD) mount; default nadir-free forward-oblique from the sim")
+    stall_timeout_s: float = Field(2.0, gt=0, description="no frame for this long → reopen the source")
+
+
+class SupervisorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    watchdog: bool = Field(True, description="send WATCHDOG=1 to systemd only while the pipeline makes progress")
+    stage_restart_limit: int = Field(5, ge=0, description="restarts of a failed stage before giving up")
+    state_dir: Path = Field(Path("~/.local/state/terraslam"), description="recordings and the last T_fine")
+
+
+class LoggingConfig(BaseModel):
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    json_logs: bool = Field(False, alias="json", description="one JSON object per log line")
+    rerun: Literal["off", "save", "serve", "spawn"] = Field("off", description="rerun-sdk visualisation")
+    record_dir: Path | None = Field(None, description="where .rrd recordings and plots go")
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class AppConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    camera: CameraConfig = CameraConfig()
+    slam: SlamConfig = SlamConfig()
+    gis: GisConfig = GisConfig()
+    alignment: AlignmentConfig = AlignmentConfig()
+    mavlink: MavlinkConfig = MavlinkConfig()
+    switching: SwitchingConfig = SwitchingConfig()
+    supervisor: SupervisorConfig = SupervisorConfig()
+    logging: LoggingConfig = LoggingConfig()
+
+
+class ConfigError(ValueError):
+    """A config file or override is invalid; the message names key, value and expectation."""
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration ({source}):"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"])
+        if e["type"] == "extra_forbidden":
+            lines.append(f"  {key}: unknown key (value {e.get('input')!r}); check spelling against `terraslam config dump`")
+        else:
+            lines.append(f"  {key}: got {e.get('input')!r}; expected {e['msg'].lower()}")
+    return "\n".join(lines)
+
+
+def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(ENV_PREFIX) or "__" not in name:
+            continue
+        path = name[len(ENV_PREFIX):].lower().split("__")
+        node = out
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+        node[path[-1]] = yaml.safe_load(raw) if raw != "" else None
+    return out
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(merged.get(k), Mapping):
+            merged[k] = _merge(merged[k], v)
+        else:
+            merged[k] = v
+    return merged
+
+
+def load_config(path: Path | str | None = None, environ: Mapping[str, str] | None = None) -> AppConfig:
+    """Load ``path`` (default: config/default.yaml) and apply TERRASLAM_* overrides.
+
+    Raises ConfigError naming the offending key, its value and what was expected.
+    """
+    path = Path(path) if path is not None else DEFAULT_CONFIG_PATH
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {path} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path}: top level must be a mapping of sections, got {type(data).__name__}")
+    env = _env_overrides(os.environ if environ is None else environ)
+    try:
+        return AppConfig.model_validate(_merge(data, env))
+    except ValidationError as e:
+        src = str(path) + (" + TERRASLAM_* environment" if env else "")
+        raise ConfigError(_format_validation_error(e, src)) from None
+
+
+def dump_config(cfg: AppConfig) -> str:
+    """The effective config as YAML (paths as strings, aliases as written in files)."""
+    return yaml.safe_dump(cfg.model_dump(mode="json", by_alias=True), sort_keys=False)

@@ -1,0 +1,72 @@
+"""Values that cross the gis/ boundary: the SLAM→ECEF alignment and the global fix.
+
+Frames: ``ecef`` is EPSG:4978, geodetic is WGS-84 EPSG:4979 (ellipsoidal height). Heights are
+always named by their datum: ``h_ellipsoid_m`` (WGS-84 ellipsoid), ``h_msl_m`` (EGM96 geoid).
+NED is the local level frame at the fix position (north, east, down).
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from gis.sim3 import Sim3
+
+
+class AlignmentSource(enum.Enum):
+    GNSS = "gnss"     # bootstrap from GNSS positions (digital-twin paper §III-D)
+    ROUGH = "rough"   # TerraSLAM §4.3 offline semantic alignment
+    FINE = "fine"     # TerraSLAM §4.4 online ICP refinement
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """T_ecef_slam: similarity mapping SLAM-frame points to ECEF metres.
+
+    information_6x6: information of the alignment's pose in the local ENU frame at the site
+    origin, ordered [rot_x, rot_y, rot_z, t_e, t_n, t_u] (digital-twin paper Eq. 8–10), in
+    1/rad² and 1/m². sigma_m: 1-σ position uncertainty (metres) the alignment contributes at the
+    map centre along the weakest direction. reset_counter / map_id: the SLAM map it applies to.
+    fitness: fraction of SLAM points with a model correspondence; rmse_m: inlier RMSE.
+    """
+
+    T_ecef_slam: Sim3
+    source: AlignmentSource
+    t_s: float
+    reset_counter: int
+    information_6x6: np.ndarray
+    sigma_m: float
+    fitness: float = 0.0
+    rmse_m: float = 0.0
+    n_points: int = 0
+    map_id: int = 0
+
+
+@dataclass(frozen=True)
+class GlobalFix:
+    """Camera/vehicle global position for one frame.
+
+    p_ecef_m: (3,) ECEF metres. lat_deg/lon_deg WGS-84; h_ellipsoid_m and h_msl_m (EGM96).
+    v_ned_mps: (3,) velocity in NED at the fix, or None when unknown. yaw_deg: body heading
+    clockwise from true north in [0, 360), or None. q_ned_body: (w, x, y, z) attitude of the body
+    FRD frame in NED, or None. cov_ned_m2: 3x3 position covariance in NED (m²); h_acc_m / v_acc_m
+    are the 1-σ horizontal / vertical accuracies derived from it (what GPS_INPUT reports).
+    """
+
+    t_s: float
+    seq: int
+    p_ecef_m: np.ndarray
+    lat_deg: float
+    lon_deg: float
+    h_ellipsoid_m: float
+    h_msl_m: float
+    cov_ned_m2: np.ndarray
+    h_acc_m: float
+    v_acc_m: float
+    source: AlignmentSource
+    v_ned_mps: np.ndarray | None = None
+    speed_acc_mps: float | None = None
+    yaw_deg: float | None = None
+    q_ned_body: np.ndarray | None = None
+    reset_counter: int = 0

@@ -1,0 +1,66 @@
+"""Values that cross the mavlink_bridge/ boundary.
+
+GnssSample mirrors what GPS_RAW_INT carries (plus the ellipsoid height GPS_RAW_INT offers as
+``alt_ellipsoid``); the GNSS simulator produces it and the monitor decodes it from the wire.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class GpsFixType(enum.IntEnum):
+    """MAVLink GPS_FIX_TYPE."""
+
+    NO_GPS = 0
+    NO_FIX = 1
+    FIX_2D = 2
+    FIX_3D = 3
+    DGPS = 4
+    RTK_FLOAT = 5
+    RTK_FIXED = 6
+
+
+@dataclass(frozen=True)
+class GnssSample:
+    """One receiver solution.
+
+    t_s: monotonic seconds; lat_deg/lon_deg WGS-84; alt_msl_m (EGM96) and h_ellipsoid_m;
+    eph/epv: HDOP/VDOP (dimensionless, as GPS_RAW_INT), h_acc_m/v_acc_m: 1-σ accuracies;
+    vel_ned_mps: (vn, ve, vd) m/s or None; satellites: visible satellites (255 = unknown).
+    """
+
+    t_s: float
+    fix_type: GpsFixType
+    lat_deg: float
+    lon_deg: float
+    alt_msl_m: float
+    h_ellipsoid_m: float
+    eph: float
+    epv: float
+    h_acc_m: float
+    v_acc_m: float
+    satellites: int
+    vel_ned_mps: tuple[float, float, float] | None = None
+    cog_deg: float | None = None
+
+
+class GnssQuality(enum.Enum):
+    GOOD = "good"            # trusted: we stand by
+    DEGRADED = "degraded"    # usable but poor (few satellites, large eph)
+    LOST = "lost"            # no fix / stale
+    UNTRUSTED = "untrusted"  # fix looks fine but disagrees with vision (spoofing) or glitch flags
+
+
+@dataclass(frozen=True)
+class GnssStatus:
+    """Verdict of the GNSS monitor at time t_s with human-readable reasons."""
+
+    t_s: float
+    quality: GnssQuality
+    reasons: tuple[str, ...]
+    sample: GnssSample | None = None
+
+    @property
+    def trusted(self) -> bool:
+        return self.quality is GnssQuality.GOOD

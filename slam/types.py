@@ -1,0 +1,122 @@
+"""Values that cross the slam/ boundary.
+
+Frames (DESIGN.md): ``T_a_b`` is a 4x4 homogeneous transform mapping points in frame b to frame a.
+The camera frame is OpenCV's (x right, y down, z forward). ``slam`` is the local frame of the SLAM
+map: arbitrary origin and, for monocular SLAM, arbitrary scale. Times are monotonic seconds.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with OpenCV distortion (k1, k2, p1, p2[, k3]); pixels, image size in pixels."""
+
+    width_px: int
+    height_px: int
+    K: np.ndarray  # 3x3 intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def is_distorted(self) -> bool:
+        return bool(np.any(np.abs(self.dist) > 0))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera image as it enters SLAM.
+
+    image: HxW uint8 grayscale or HxWx3 uint8 BGR, already at the calibrated size.
+    t_s: capture time, monotonic seconds (the camera source's clock).
+    seq: frame counter of the source, strictly increasing.
+    """
+
+    image: np.ndarray
+    t_s: float
+    seq: int
+
+
+@dataclass(frozen=True)
+class AttitudePrior:
+    """Optional autopilot prior for one frame (beyond the papers, issue 4 §5).
+
+    roll/pitch/yaw of the body in NED, radians; baro_alt_m: barometric altitude (relative, metres).
+    """
+
+    t_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    baro_alt_m: float | None = None
+
+
+class TrackingState(enum.Enum):
+    INITIALIZING = "initializing"
+    OK = "ok"
+    LOST = "lost"
+    RELOCALIZED = "relocalized"
+
+    @property
+    def has_pose(self) -> bool:
+        return self in (TrackingState.OK, TrackingState.RELOCALIZED)
+
+
+@dataclass(frozen=True)
+class SlamPose:
+    """Tracking output for one frame.
+
+    T_slam_cam: 4x4 camera-to-SLAM transform (camera centre = T_slam_cam[:3, 3]); only meaningful
+    when ``state.has_pose``. reset_counter increments whenever the SLAM frame is re-created (new
+    map after a reset) or jumps (loop closure correction) so downstream alignments can be dropped.
+    n_inliers: map points used for the pose; tracking_ms: wall time spent in the tracking thread.
+    """
+
+    t_s: float
+    seq: int
+    T_slam_cam: np.ndarray
+    state: TrackingState
+    reset_counter: int
+    n_inliers: int = 0
+    tracking_ms: float = 0.0
+    map_id: int = 0
+
+
+@dataclass(frozen=True)
+class MapUpdate:
+    """New/changed map points in the SLAM frame, produced by local mapping / loop closing.
+
+    points_slam: (N, 3) positions; point_ids: (N,) stable ids; n_obs: (N,) observation counts.
+    keyframe_t_s / keyframe_centers_slam: (K,) times and (K, 3) camera centres of the keyframes
+    in the current local window. reset_counter matches SlamPose.reset_counter of the map it
+    describes; ``full`` is True when this update replaces all points (e.g. after a loop closure).
+    """
+
+    t_s: float
+    points_slam: np.ndarray
+    point_ids: np.ndarray
+    n_obs: np.ndarray
+    keyframe_t_s: np.ndarray
+    keyframe_centers_slam: np.ndarray
+    reset_counter: int
+    full: bool = False
+    map_id: int = 0
