@@ -268,10 +268,10 @@ class CameraSource:
         timeout_s = self.stall_timeout_s if timeout_s is None else timeout_s
         with self._cond:
             self._cond.wait_for(lambda: self._slot is not None or self._stats.eof or self._fatal or self._closed, timeout_s)
-            if self._fatal:
-                raise CameraError(self._fatal)
             slot, self._slot = self._slot, None
             if slot is None:
+                if self._fatal:  # after the frames grabbed before the failure were delivered
+                    raise CameraError(self._fatal)
                 return None
             self._stats.delivered += 1
             self._cond.notify_all()  # a lossless producer waits for the slot to empty
@@ -325,7 +325,7 @@ class CameraSource:
     # producer side
 
     def _publish(self, gen: int, image: np.ndarray, t_s: float, item: Any) -> bool:
-        grab_t_s = time.monotonic()
+        grab_t_s = t_s if self.live else time.monotonic()  # live readers stamp t_s right after the grab
         with self._cond:
             if self.lossless:
                 self._cond.wait_for(lambda: self._slot is None or self._closed or gen != self._gen)
