@@ -13,6 +13,7 @@ class GisConfig(BaseModel):
     model: Path | None = Field(None, description="GIS model file to use directly (any supported format)")
     fetch_radius_m: float = Field(10_000.0, gt=0, le=100_000, description="fetch models within this radius of the rough position (TerraSLAM §6)")
     fetch_timeout_s: float = Field(30.0, gt=0, le=600)
+    sample_spacing_m: float = Field(1.0, gt=0.05, le=20, description="surface sampling of meshes/polygons when loading a model (one point per spacing²)")
 
 
 class AlignmentConfig(BaseModel):
@@ -24,3 +25,15 @@ class AlignmentConfig(BaseModel):
     max_rmse_m: float = Field(1.0, gt=0, description="registration rejected above this inlier RMSE")
     max_jump_m: float = Field(5.0, gt=0, description="registration rejected if it moves the map more than this")
     bootstrap_from_gnss: bool = Field(True, description="without T_rough, bootstrap the alignment from good GNSS (digital-twin §III-D)")
+    source_voxel_m: float = Field(0.5, gt=0, le=20, description="voxel size for the SLAM points before fine-tuning")
+    target_voxel_m: float = Field(1.0, gt=0, le=20, description="voxel size for the cropped GIS model before fine-tuning")
+    max_correspondence_m: float = Field(3.0, gt=0, le=50, description="first (widest) ICP correspondence distance; halved twice (coarse-to-fine)")
+    robust_kernel_m: float = Field(0.5, gt=0, le=10, description="Tukey kernel width on point-to-plane residuals (outliers, stale model)")
+    inlier_distance_m: float = Field(0.5, gt=0, le=10, description="a SLAM point is an inlier (fitness, RMSE) within this point-to-plane distance")
+    min_points: int = Field(50, ge=10, le=1_000_000, description="registration rejected with fewer SLAM points in the crop")
+    max_sigma_m: float = Field(0.5, gt=0, description="registration rejected when the 1-σ position along its weakest direction exceeds this (degeneracy, Eq. 8–10)")
+    max_sigma_rot_deg: float = Field(2.0, gt=0, le=180, description="registration rejected when its weakest rotation 1-σ exceeds this")
+    max_sigma_scale: float = Field(0.05, gt=0, le=1, description="registration rejected when the relative scale 1-σ exceeds this")
+    sigma_floor_m: float = Field(0.05, gt=0, le=10, description="lower bound of the per-point residual σ used for the alignment information")
+    fpfh_fallback: bool = Field(True, description="when ICP from the guess fails, retry from an FPFH+RANSAC global registration")
+    slam_drift_fraction: float = Field(0.01, ge=0, le=1, description="SLAM drift per metre travelled away from the last alignment's centre, added to a fix's σ")

@@ -1,0 +1,484 @@
+"""Load any supported GIS file into one :class:`gis.model.GisModel` (issue 5 §1).
+
+Formats (dispatched on content, then extension):
+- Triangle meshes PLY / OBJ / GLB / glTF, with a ``<file>.georef.json`` sidecar (CONTRIBUTING.md).
+  GLB/glTF follow glTF's Y-up convention: file (x, y, z) is CRS (x, −z, y), as 3D Tiles do.
+  Meshes are sampled on their surface (``sample_spacing_m``), normals are face normals, labels
+  come from a ``classification``/``label`` vertex or face property when present.
+- Point clouds PLY (sidecar) and LAS/LAZ (CRS from the WKT/GeoTIFF VLR, read by laspy + pyproj),
+  labels from the LAS classification; normals from the file or estimated (open3d, k-NN PCA).
+- CityJSON (``metadata.referenceSystem``): every surface of the highest LoD geometry of each
+  city object, labelled by object type.
+- GeoJSON building footprints (WGS-84 lon/lat, RFC 7946), extruded by ``height`` (m) or by
+  ``building:levels`` × 3 m, else ``DEFAULT_BUILDING_HEIGHT_M``; the base is the polygon's third
+  coordinate (ellipsoidal height) if given, else ``min_height``, else ``ground_h_ellipsoid_m``.
+  OSM .osm.pbf needs pyosmium, which is not installed: convert with ``osmium export -f geojson``.
+- 3D Tiles 1.0/1.1 (``tileset.json`` with b3dm or glb content, as Cesium and Google Photorealistic
+  3D Tiles serve them): leaf tiles, with tile transforms, RTC_CENTER / CESIUM_RTC and the glTF
+  Y-up → Z-up rotation of the 3D Tiles spec. Local files only here; see gis.providers for HTTP.
+"""
+from __future__ import annotations
+
+import io
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import trimesh
+from matplotlib.path import Path as PolyPath
+from pyproj import CRS, Transformer
+from pyproj.exceptions import CRSError
+
+from gis.geodesy import LocalFrame, geodetic_to_ecef, msl_to_ellipsoid
+from gis.model import (
+    BUILDING, GROUND, HIGH_VEGETATION, ROAD, UNCLASSIFIED,
+    GisFormatError, GisModel, frame_at_centroid, merge_models, model_from_ecef,
+)
+
+LEVEL_HEIGHT_M = 3.0            # height of one OSM building:level
+DEFAULT_BUILDING_HEIGHT_M = 10.0  # footprint with neither height nor building:levels
+#: glTF is Y-up; 3D Tiles and our georeferenced files are Z-up: (x, y, z)_gltf → (x, −z, y).
+R_ZUP_YUP = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+_LABEL_KEYS = ("classification", "label", "class")
+_CITYJSON_LABELS = {
+    "Building": BUILDING, "BuildingPart": BUILDING, "BuildingInstallation": BUILDING,
+    "Road": ROAD, "Railway": ROAD, "TransportSquare": ROAD,
+    "TINRelief": GROUND, "LandUse": GROUND,
+    "PlantCover": HIGH_VEGETATION, "SolitaryVegetationObject": HIGH_VEGETATION,
+}
+
+
+def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_ellipsoid_m: float = 0.0) -> GisModel:
+    """Load a GIS model file (or a 3D Tiles directory) into a GisModel; GisFormatError on bad input."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        if (path / "tileset.json").is_file():
+            return load_3dtiles(path / "tileset.json", sample_spacing_m)
+        raise GisFormatError(path, "directory without a tileset.json (only 3D Tiles come as directories)")
+    if not path.is_file():
+        raise GisFormatError(path, "no such file")
+    name = path.name.lower()
+    if name.endswith(".osm.pbf") or name.endswith(".pbf"):
+        raise GisFormatError(path, "OSM PBF needs pyosmium, which is not installed; convert with `osmium export -f geojson` and load the GeoJSON")
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(b"ply"):
+        return load_ply(path, sample_spacing_m)
+    if head.startswith(b"LASF"):
+        return load_las(path)
+    if head.startswith(b"glTF"):
+        return load_mesh(path, sample_spacing_m)
+    if head.startswith(b"b3dm"):
+        raise GisFormatError(path, "a lone b3dm tile has no georeference; load the tileset.json that references it")
+    if name.endswith(".obj") or name.endswith(".gltf"):
+        return load_mesh(path, sample_spacing_m)
+    if head.lstrip()[:1] in (b"{", b"["):
+        doc = _read_json(path)
+        kind = doc.get("type") if isinstance(doc, dict) else None
+        if kind == "CityJSON":
+            return load_cityjson(path, sample_spacing_m, doc)
+        if kind in ("FeatureCollection", "Feature"):
+            return load_geojson(path, sample_spacing_m, ground_h_ellipsoid_m, doc)
+        if isinstance(doc, dict) and "asset" in doc and "root" in doc:
+            return load_3dtiles(path, sample_spacing_m)
+        raise GisFormatError(path, f"JSON is neither CityJSON, GeoJSON nor a 3D Tiles tileset (type={kind!r})")
+    if name.endswith((".las", ".laz")):
+        raise GisFormatError(path, "not a LAS/LAZ file (missing 'LASF' signature)")
+    raise GisFormatError(path, "unsupported or unrecognised GIS format (PLY, OBJ, GLB/glTF, LAS/LAZ, CityJSON, GeoJSON, 3D Tiles)")
+
+
+# --- georeference ---------------------------------------------------------------------------
+
+def read_georef(path: Path) -> tuple[CRS, np.ndarray, str]:
+    """The ``<file>.georef.json`` sidecar: (crs, offset_m (3,), vertical 'ellipsoid'|'egm96')."""
+    side = path.with_name(path.name + ".georef.json")
+    if not side.is_file():
+        raise GisFormatError(path, f"no georeference: {side.name} sidecar missing (see CONTRIBUTING.md)")
+    doc = _read_json(side)
+    try:
+        crs = CRS.from_user_input(doc["crs"])
+        offset = np.asarray(doc.get("offset_m", [0.0, 0.0, 0.0]), float).reshape(3)
+        vertical = doc.get("vertical", "ellipsoid")
+    except KeyError as e:
+        raise GisFormatError(side, f"missing key {e}") from None
+    except (CRSError, ValueError, TypeError) as e:
+        raise GisFormatError(side, f"bad georeference: {e}") from None
+    if vertical not in ("ellipsoid", "egm96"):
+        raise GisFormatError(side, f"key 'vertical' must be 'ellipsoid' or 'egm96', got {vertical!r}")
+    return crs, offset, vertical
+
+
+def crs_to_ecef(p: np.ndarray, crs: CRS, vertical: str = "ellipsoid") -> np.ndarray:
+    """Points (N,3) in ``crs`` → ECEF. A 2D CRS takes z as height on ``vertical``; a 3D/compound CRS
+    carries its own vertical datum (PROJ handles it)."""
+    p = np.asarray(p, float)
+    if crs.is_geocentric:
+        return p.copy()
+    to_geo = _transformer(crs.to_wkt())
+    lon, lat, h = to_geo.transform(p[:, 0], p[:, 1], p[:, 2])
+    lat, lon, h = np.asarray(lat), np.asarray(lon), np.asarray(h)
+    if len(crs.axis_info) < 3 and vertical == "egm96":
+        h = msl_to_ellipsoid(lat, lon, h)
+    ecef = geodetic_to_ecef(lat, lon, h)
+    if not np.all(np.isfinite(ecef)):
+        raise ValueError(f"{int((~np.isfinite(ecef)).any(axis=1).sum())} points fall outside the CRS's area")
+    return ecef
+
+
+def _transformer(wkt: str) -> Transformer:
+    return Transformer.from_crs(CRS.from_wkt(wkt), "EPSG:4979", always_xy=True)
+
+
+def _normals_to_ecef(p: np.ndarray, n: np.ndarray, crs: CRS, vertical: str) -> np.ndarray:
+    """Carry normals through the (non-linear) CRS → ECEF map by a 1 m finite difference."""
+    return crs_to_ecef(p + n, crs, vertical) - crs_to_ecef(p, crs, vertical)
+
+
+def _georeferenced(path: Path, p_file: np.ndarray, n_file: np.ndarray | None, labels: np.ndarray,
+                   crs: CRS, offset: np.ndarray, vertical: str, sample_spacing_m: float) -> GisModel:
+    p = p_file + offset
+    try:
+        ecef = crs_to_ecef(p, crs, vertical)
+        n_ecef = None if n_file is None else _normals_to_ecef(p, n_file, crs, vertical)
+    except ValueError as e:
+        raise GisFormatError(path, f"cannot transform from {crs.name}: {e}") from None
+    if n_ecef is None:
+        origin = frame_at_centroid(ecef)
+        p_enu = origin.ecef_to_enu(ecef)
+        return GisModel(p_enu, estimate_normals(p_enu, 3.0 * sample_spacing_m), labels, origin, crs.to_string(), path)
+    return model_from_ecef(ecef, n_ecef, labels, crs.to_string(), path)
+
+
+def estimate_normals(p_enu: np.ndarray, radius_m: float) -> np.ndarray:
+    """Per-point normals by local PCA (open3d), oriented upward where the sign is free."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_enu))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+    return np.asarray(pcd.normals)
+
+
+# --- meshes and PLY point clouds -----------------------------------------------------------
+
+def load_ply(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
+    return load_mesh(path, sample_spacing_m)
+
+
+def load_mesh(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
+    """PLY/OBJ/GLB/glTF mesh or PLY point cloud + georef sidecar."""
+    crs, offset, vertical = read_georef(path)
+    try:
+        geom = trimesh.load(path, process=False)
+    except Exception as e:  # trimesh raises many types on corrupt input
+        raise GisFormatError(path, f"cannot parse: {type(e).__name__}: {e}") from None
+    is_gltf = path.suffix.lower() in (".glb", ".gltf")
+    if isinstance(geom, trimesh.Scene):
+        if not geom.geometry:
+            raise GisFormatError(path, "scene holds no geometry")
+        geom = geom.to_mesh() if all(isinstance(g, trimesh.Trimesh) for g in geom.geometry.values()) else geom.to_geometry()
+    if isinstance(geom, trimesh.PointCloud):
+        p = np.asarray(geom.vertices, float)
+        raw = geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+        labels = _labels_from(raw, len(p))
+        n = None
+        if raw is not None and all(k in raw.dtype.names for k in ("nx", "ny", "nz")):
+            n = np.stack([raw["nx"], raw["ny"], raw["nz"]], axis=1).astype(float)
+        return _georeferenced(path, p, n, labels, crs, offset, vertical, sample_spacing_m)
+    if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+        raise GisFormatError(path, f"no triangles or points found ({type(geom).__name__})")
+    p, n, face_idx = sample_mesh(geom, sample_spacing_m)
+    labels = _mesh_labels(geom, face_idx)
+    if is_gltf:
+        p, n = p @ R_ZUP_YUP.T, n @ R_ZUP_YUP.T
+    return _georeferenced(path, p, n, labels, crs, offset, vertical, sample_spacing_m)
+
+
+def sample_mesh(mesh: trimesh.Trimesh, spacing_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Uniform surface samples (about one per spacing_m²), their face normals and face indices."""
+    area = float(mesh.area)
+    if not np.isfinite(area) or area <= 0:
+        raise ValueError("mesh has zero or non-finite surface area")
+    count = max(int(np.ceil(area / spacing_m**2)), len(mesh.faces))
+    p, face_idx = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    normals = np.asarray(mesh.face_normals)[face_idx]
+    return np.asarray(p, float), normals, np.asarray(face_idx)
+
+
+def _labels_from(raw: np.ndarray | None, n: int) -> np.ndarray:
+    if raw is not None and raw.dtype.names:
+        for k in _LABEL_KEYS:
+            if k in raw.dtype.names:
+                return np.asarray(raw[k]).astype(np.uint8)
+    return np.full(n, UNCLASSIFIED, np.uint8)
+
+
+def _mesh_labels(mesh: trimesh.Trimesh, face_idx: np.ndarray) -> np.ndarray:
+    raw = mesh.metadata.get("_ply_raw", {})
+    face = raw.get("face", {}).get("data")
+    if face is not None and face.dtype.names and any(k in face.dtype.names for k in _LABEL_KEYS):
+        return _labels_from(face, len(mesh.faces))[face_idx]
+    vert = raw.get("vertex", {}).get("data")
+    per_vertex = _labels_from(vert, len(mesh.vertices))
+    return per_vertex[np.asarray(mesh.faces)[face_idx, 0]]
+
+
+# --- LAS / LAZ ------------------------------------------------------------------------------
+
+def load_las(path: Path) -> GisModel:
+    import laspy
+
+    try:
+        las = laspy.read(path)
+        crs = las.header.parse_crs()
+    except Exception as e:  # laspy raises LaspyException, ValueError, struct errors...
+        raise GisFormatError(path, f"cannot parse LAS/LAZ: {type(e).__name__}: {e}") from None
+    if crs is None:
+        raise GisFormatError(path, "LAS/LAZ has no CRS VLR (WKT or GeoTIFF keys); cannot georeference")
+    if len(las.points) == 0:
+        raise GisFormatError(path, "LAS/LAZ holds no points")
+    p = np.asarray(las.xyz, float)
+    labels = np.asarray(las.classification).astype(np.uint8)
+    return _georeferenced(path, p, None, labels, crs, np.zeros(3), "ellipsoid", _median_spacing(p))
+
+
+def _median_spacing(p: np.ndarray) -> float:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[:: max(1, len(p) // 2000)] - p.mean(axis=0)))
+    d = np.asarray(pcd.compute_nearest_neighbor_distance())
+    return float(np.median(d)) if len(d) and np.median(d) > 0 else 1.0
+
+
+# --- polygons (CityJSON surfaces, GeoJSON footprints) ---------------------------------------
+
+def sample_polygon(outer: np.ndarray, holes: list[np.ndarray], spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grid samples (spacing_m) inside a planar 3D polygon with holes, and its Newell normal.
+
+    The polygon is projected on its own plane and tested with matplotlib's point-in-polygon, so
+    concave footprints and holes need no triangulation library.
+    """
+    outer = np.asarray(outer, float)
+    nrm = np.cross(outer, np.roll(outer, -1, axis=0)).sum(axis=0)  # Newell's method
+    if np.linalg.norm(nrm) < 1e-12:
+        return np.zeros((0, 3)), np.zeros(3)
+    nrm /= np.linalg.norm(nrm)
+    u = np.cross(nrm, [0.0, 0.0, 1.0] if abs(nrm[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(nrm, u)
+    o = outer.mean(axis=0)
+    to2 = lambda r: np.stack([(r - o) @ u, (r - o) @ v], axis=1)  # noqa: E731
+    o2 = to2(outer)
+    lo, hi = o2.min(axis=0), o2.max(axis=0)
+    gu = np.arange(lo[0] + spacing_m / 2, hi[0], spacing_m)
+    gv = np.arange(lo[1] + spacing_m / 2, hi[1], spacing_m)
+    g = np.stack(np.meshgrid(gu, gv), axis=-1).reshape(-1, 2)
+    inside = PolyPath(o2).contains_points(g) if len(g) else np.zeros(0, bool)
+    for h in holes:
+        if len(g):
+            inside &= ~PolyPath(to2(np.asarray(h, float))).contains_points(g)
+    g = g[inside]
+    if len(g) == 0:  # smaller than one grid cell: keep its centroid
+        g = o2.mean(axis=0, keepdims=True)
+    return o + g[:, :1] * u + g[:, 1:] * v, nrm
+
+
+def load_cityjson(path: Path, sample_spacing_m: float = 1.0, doc: dict | None = None) -> GisModel:
+    doc = doc if doc is not None else _read_json(path)
+    try:
+        ref = doc.get("metadata", {}).get("referenceSystem")
+        if not ref:
+            raise GisFormatError(path, "CityJSON has no metadata.referenceSystem; cannot georeference")
+        crs = _cityjson_crs(path, ref)
+        v = np.asarray(doc["vertices"], float)
+        if "transform" in doc:
+            v = v * np.asarray(doc["transform"]["scale"], float) + np.asarray(doc["transform"]["translate"], float)
+        pts, nrms, labs = [], [], []
+        for obj_id, obj in doc["CityObjects"].items():
+            geoms = obj.get("geometry", [])
+            if not geoms:
+                continue
+            g = max(geoms, key=lambda g: float(g.get("lod", 0)))
+            label = _CITYJSON_LABELS.get(obj.get("type", ""), UNCLASSIFIED)
+            for surface in _surfaces(g["boundaries"]):
+                rings = [v[np.asarray(r, int)] for r in surface]
+                p, n = sample_polygon(rings[0], rings[1:], sample_spacing_m)
+                pts.append(p)
+                nrms.append(np.broadcast_to(n, p.shape))
+                labs.append(np.full(len(p), label, np.uint8))
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        if isinstance(e, GisFormatError):
+            raise
+        raise GisFormatError(path, f"malformed CityJSON: {type(e).__name__}: {e}") from None
+    if not pts:
+        raise GisFormatError(path, "CityJSON holds no surfaces")
+    p, n = np.concatenate(pts), np.concatenate(nrms)
+    return _georeferenced(path, p, n, np.concatenate(labs), crs, np.zeros(3), "ellipsoid", sample_spacing_m)
+
+
+def _cityjson_crs(path: Path, ref: str) -> CRS:
+    # "https://www.opengis.net/def/crs/EPSG/0/7415" or "urn:ogc:def:crs:EPSG::7415" or "EPSG:7415"
+    code = ref.rstrip("/").replace("::", "/").replace(":", "/").split("/")[-1]
+    try:
+        return CRS.from_epsg(int(code)) if code.isdigit() else CRS.from_user_input(ref)
+    except CRSError as e:
+        raise GisFormatError(path, f"unknown referenceSystem {ref!r}: {e}") from None
+
+
+def _surfaces(b):
+    """Yield surfaces (lists of rings of vertex indices) from any CityJSON boundary nesting."""
+    if b and isinstance(b[0], list) and b[0] and isinstance(b[0][0], int):
+        yield b
+    else:
+        for x in b:
+            yield from _surfaces(x)
+
+
+def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_ellipsoid_m: float = 0.0,
+                 doc: dict | None = None) -> GisModel:
+    doc = doc if doc is not None else _read_json(path)
+    feats = doc["features"] if doc.get("type") == "FeatureCollection" else [doc]
+    footprints = []  # (rings lon/lat/h, base_h, height_m)
+    for i, f in enumerate(feats):
+        try:
+            g = f["geometry"]
+            props = f.get("properties") or {}
+            polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"] if g["type"] == "MultiPolygon" else []
+            height = _building_height(props)
+            for poly in polys:
+                rings = [np.asarray(r, float) for r in poly]
+                if rings[0].ndim != 2 or len(rings[0]) < 4:
+                    raise ValueError("polygon ring needs at least 4 positions")
+                base = float(np.mean(rings[0][:, 2])) if rings[0].shape[1] > 2 else float(props.get("min_height", ground_h_ellipsoid_m))
+                footprints.append((rings, base, height))
+        except (KeyError, TypeError, ValueError) as e:
+            raise GisFormatError(path, f"feature {i}: {type(e).__name__}: {e}") from None
+    if not footprints:
+        raise GisFormatError(path, "GeoJSON holds no Polygon/MultiPolygon footprints")
+    all_ll = np.concatenate([r[0][:, :2] for r, _, _ in footprints])
+    origin = LocalFrame(float(all_ll[:, 1].mean()), float(all_ll[:, 0].mean()), float(np.mean([b for _, b, _ in footprints])))
+    pts, nrms = [], []
+    for rings, base, height in footprints:
+        enu = [origin.geodetic_to_enu(r[:, 1], r[:, 0], np.full(len(r), base)) for r in rings]
+        p, n = extrude_footprint(enu, height, sample_spacing_m)
+        pts.append(p)
+        nrms.append(n)
+    p = np.concatenate(pts)
+    return GisModel(p, np.concatenate(nrms), np.full(len(p), BUILDING, np.uint8), origin, "EPSG:4979", path)
+
+
+def _building_height(props: dict) -> float:
+    if props.get("height") is not None:
+        h = float(str(props["height"]).rstrip(" m"))
+    elif props.get("building:levels") is not None:
+        h = float(props["building:levels"]) * LEVEL_HEIGHT_M
+    else:
+        h = DEFAULT_BUILDING_HEIGHT_M
+    if not np.isfinite(h) or h <= 0:
+        raise ValueError(f"building height must be > 0, got {h}")
+    return h
+
+
+def extrude_footprint(rings_enu: list[np.ndarray], height_m: float, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Walls (outward normals) and a flat roof of a footprint (outer + hole rings in ENU at base height)."""
+    pts, nrms = [], []
+    outer = rings_enu[0]
+    ccw = np.sum(outer[:-1, 0] * outer[1:, 1] - outer[1:, 0] * outer[:-1, 1]) > 0
+    for k, ring in enumerate(rings_enu):
+        sign = (1.0 if ccw else -1.0) * (1.0 if k == 0 else -1.0)
+        a, b = ring[:-1], ring[1:]
+        for a_i, b_i in zip(a, b):
+            edge = b_i[:2] - a_i[:2]
+            length = float(np.linalg.norm(edge))
+            if length < 1e-6:
+                continue
+            s = (np.arange(max(1, int(length / spacing_m))) + 0.5) / max(1, int(length / spacing_m))
+            z = np.arange(spacing_m / 2, height_m, spacing_m)
+            ss, zz = np.meshgrid(s, z)
+            wall = a_i + ss.reshape(-1, 1) * (b_i - a_i)
+            wall[:, 2] = a_i[2] + zz.reshape(-1)
+            out = sign * np.array([edge[1], -edge[0], 0.0]) / length
+            pts.append(wall)
+            nrms.append(np.broadcast_to(out, wall.shape))
+    roof = [r + np.array([0.0, 0.0, height_m]) for r in rings_enu]
+    p, _ = sample_polygon(roof[0], roof[1:], spacing_m)
+    pts.append(p)
+    nrms.append(np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape))
+    return np.concatenate(pts), np.concatenate(nrms)
+
+
+# --- 3D Tiles --------------------------------------------------------------------------------
+
+def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0) -> GisModel:
+    """Leaf tiles of a 3D Tiles tileset (b3dm or glb content) → one model."""
+    models: list[GisModel] = []
+    _walk_tileset(tileset_path, np.eye(4), sample_spacing_m, models, depth=0)
+    if not models:
+        raise GisFormatError(tileset_path, "tileset has no b3dm/glb content in its leaf tiles")
+    return merge_models(models, tileset_path)
+
+
+def _walk_tileset(path: Path, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int) -> None:
+    if depth > 16:
+        raise GisFormatError(path, "external tilesets nested deeper than 16")
+    doc = _read_json(path)
+    if "root" not in doc:
+        raise GisFormatError(path, "tileset.json without 'root'")
+    _walk_tile(path, doc["root"], T_parent, spacing, out, depth)
+
+
+def _walk_tile(ts_path: Path, tile: dict, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int) -> None:
+    T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
+    children = tile.get("children") or []
+    contents = ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or [])
+    for c in contents:
+        uri = c.get("uri") or c.get("url")
+        if not uri:
+            continue
+        cpath = ts_path.parent / uri
+        if uri.lower().endswith(".json"):
+            _walk_tileset(cpath, T, spacing, out, depth + 1)
+        elif not children:
+            out.append(_load_tile_content(cpath, T, spacing))
+    for ch in children:
+        _walk_tile(ts_path, ch, T, spacing, out, depth)
+
+
+def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
+    if not path.is_file():
+        raise GisFormatError(path, "tile content referenced by the tileset is missing")
+    data = path.read_bytes()
+    rtc = np.zeros(3)
+    if data[:4] == b"b3dm":
+        if len(data) < 28:
+            raise GisFormatError(path, "truncated b3dm header")
+        _, _, total, ft_json, ft_bin, bt_json, bt_bin = struct.unpack("<4sIIIIII", data[:28])
+        if total != len(data):
+            raise GisFormatError(path, f"b3dm byteLength {total} != file size {len(data)} (truncated?)")
+        if ft_json:
+            ft = json.loads(data[28 : 28 + ft_json].decode("utf-8").strip(" \x00") or "{}")
+            rtc = np.asarray(ft.get("RTC_CENTER", [0, 0, 0]), float)
+        data = data[28 + ft_json + ft_bin + bt_json + bt_bin :]
+    if data[:4] != b"glTF":
+        raise GisFormatError(path, "tile content is neither b3dm nor glb")
+    try:
+        jlen = struct.unpack("<I", data[12:16])[0]
+        gltf_json = json.loads(data[20 : 20 + jlen])
+        cesium_rtc = gltf_json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
+        if cesium_rtc is not None:
+            rtc = np.asarray(cesium_rtc, float)
+        scene = trimesh.load(io.BytesIO(data), file_type="glb", force="scene")
+        mesh = scene.to_mesh()
+        p, n, _ = sample_mesh(mesh, spacing)
+    except Exception as e:  # corrupt glb: trimesh/json/struct errors of many kinds
+        raise GisFormatError(path, f"cannot parse glb payload: {type(e).__name__}: {e}") from None
+    p = p @ R_ZUP_YUP.T + rtc
+    n = n @ R_ZUP_YUP.T
+    R = T_ecef_tile[:3, :3]
+    p_ecef = p @ R.T + T_ecef_tile[:3, 3]
+    return model_from_ecef(p_ecef, n @ R.T, np.full(len(p), UNCLASSIFIED, np.uint8), "EPSG:4978", path)
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise GisFormatError(path, f"invalid JSON: {e}") from None

@@ -1,0 +1,146 @@
+"""The one in-memory GIS model every loader produces, and the fixed-size crop used by alignment.
+
+Points and normals are in a local ENU frame (``origin``: geodetic WGS-84, ellipsoidal height).
+Labels are ASPRS LAS classification codes (1 unclassified, 2 ground, 5 high vegetation,
+6 building, 11 road surface).
+
+Cropping uses a grid index over the horizontal plane (points sorted by cell once, then a
+``searchsorted`` per cell row), so the cost of a crop depends on the crop size only, not on the
+size of the model (digital-twin paper §III-E: registration on a fixed-size crop).
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gis.geodesy import LocalFrame, ecef_to_geodetic
+
+UNCLASSIFIED, GROUND, HIGH_VEGETATION, BUILDING, ROAD = 1, 2, 5, 6, 11
+
+#: Grid cell size (m) of the crop index; a 150 m crop touches about 16 cells.
+INDEX_CELL_M = 50.0
+
+
+class GisFormatError(ValueError):
+    """A GIS file is corrupt, unsupported or lacks its georeference; the message names file + problem."""
+
+    def __init__(self, path: Path | str, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = Path(path)
+        self.problem = problem
+
+
+@dataclass(frozen=True, eq=False)
+class GisModel:
+    """points_enu (N,3) m, normals_enu (N,3) unit, labels (N,) uint8 ASPRS, origin of the ENU frame,
+    source_crs (the CRS the file was in, as text), source_path (file or directory it came from)."""
+
+    points_enu: np.ndarray
+    normals_enu: np.ndarray
+    labels: np.ndarray
+    origin: LocalFrame
+    source_crs: str
+    source_path: Path
+    _index: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        p = np.ascontiguousarray(self.points_enu, dtype=np.float64)
+        n = np.ascontiguousarray(self.normals_enu, dtype=np.float64)
+        lab = np.ascontiguousarray(self.labels, dtype=np.uint8)
+        if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape or lab.shape != (len(p),):
+            raise ValueError(f"GisModel arrays disagree: points {p.shape}, normals {n.shape}, labels {lab.shape}")
+        if len(p) == 0:
+            raise GisFormatError(self.source_path, "model holds no points")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(n))):
+            raise GisFormatError(self.source_path, "model has non-finite coordinates or normals")
+        object.__setattr__(self, "points_enu", p)
+        object.__setattr__(self, "normals_enu", n)
+        object.__setattr__(self, "labels", lab)
+        object.__setattr__(self, "source_path", Path(self.source_path))
+
+    def __len__(self) -> int:
+        return len(self.points_enu)
+
+    @property
+    def bounds_enu(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.points_enu.min(axis=0), self.points_enu.max(axis=0)
+
+    @functools.cached_property
+    def _grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """(order, sorted cell keys, cell-min, number of columns) of the horizontal grid index."""
+        lo = np.floor(self.points_enu[:, :2].min(axis=0) / INDEX_CELL_M).astype(np.int64)
+        ij = np.floor(self.points_enu[:, :2] / INDEX_CELL_M).astype(np.int64) - lo
+        ncol = int(ij[:, 0].max()) + 1
+        keys = ij[:, 1] * ncol + ij[:, 0]
+        order = np.argsort(keys, kind="stable")
+        return order, keys[order], lo, ncol
+
+    def crop(self, center_enu: np.ndarray, size_m: float) -> np.ndarray:
+        """Indices of points inside the horizontal square of side size_m centred at center_enu (any height)."""
+        order, keys, lo, ncol = self._grid
+        c = np.asarray(center_enu, float)[:2]
+        half = size_m / 2.0
+        i0, j0 = (np.floor((c - half) / INDEX_CELL_M).astype(np.int64) - lo)
+        i1, j1 = (np.floor((c + half) / INDEX_CELL_M).astype(np.int64) - lo)
+        i0, i1 = max(i0, 0), min(i1, ncol - 1)
+        if i1 < i0:
+            return np.zeros(0, dtype=np.int64)
+        rows = np.arange(max(j0, 0), j1 + 1)
+        starts = np.searchsorted(keys, rows * ncol + i0, side="left")
+        ends = np.searchsorted(keys, rows * ncol + i1, side="right")
+        if len(rows) == 0:
+            return np.zeros(0, dtype=np.int64)
+        idx = order[np.concatenate([np.arange(s, e) for s, e in zip(starts, ends)])]
+        p = self.points_enu[idx, :2]
+        inside = np.all(np.abs(p - c) <= half, axis=1)
+        return idx[inside]
+
+
+def frame_at_centroid(p_ecef_m: np.ndarray) -> LocalFrame:
+    """A local ENU frame whose origin is the geodetic position of the points' centroid."""
+    lat, lon, h = ecef_to_geodetic(np.asarray(p_ecef_m, float).mean(axis=0))
+    return LocalFrame(float(lat), float(lon), float(h))
+
+
+def model_from_ecef(
+    p_ecef_m: np.ndarray,
+    normals_ecef: np.ndarray,
+    labels: np.ndarray,
+    source_crs: str,
+    source_path: Path | str,
+    origin: LocalFrame | None = None,
+) -> GisModel:
+    """Build a GisModel from ECEF points and ECEF-frame normals (origin: centroid unless given)."""
+    if len(p_ecef_m) == 0:
+        raise GisFormatError(source_path, "no geometry found")
+    origin = origin or frame_at_centroid(p_ecef_m)
+    R = origin.R_ecef_enu
+    n = np.asarray(normals_ecef, float) @ R
+    return GisModel(origin.ecef_to_enu(p_ecef_m), _unit(n, source_path), labels, origin, source_crs, Path(source_path))
+
+
+def merge_models(models: list[GisModel], source_path: Path | str) -> GisModel:
+    """One model from several (e.g. the tiles of a tileset), in the first model's ENU frame."""
+    if not models:
+        raise GisFormatError(source_path, "no models to merge")
+    origin = models[0].origin
+    pts, nrm = [], []
+    for m in models:
+        p_ecef = m.origin.enu_to_ecef(m.points_enu)
+        pts.append(origin.ecef_to_enu(p_ecef))
+        nrm.append(m.normals_enu @ m.origin.R_ecef_enu.T @ origin.R_ecef_enu)
+    crs = sorted({m.source_crs for m in models})
+    return GisModel(
+        np.concatenate(pts), np.concatenate(nrm), np.concatenate([m.labels for m in models]),
+        origin, ";".join(crs), Path(source_path),
+    )
+
+
+def _unit(v: np.ndarray, path: Path | str) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    if np.any(norm < 1e-12):
+        raise GisFormatError(path, f"{int(np.sum(norm < 1e-12))} zero-length normals")
+    return v / norm

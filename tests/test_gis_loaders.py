@@ -1,0 +1,236 @@
+"""GIS model ingestion: every format from files written by real writers, plus corrupt inputs."""
+from __future__ import annotations
+
+import json
+import struct
+
+import laspy
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+from pyproj import CRS, Transformer
+
+from gis.geodesy import geodetic_to_ecef
+from gis.loaders import LEVEL_HEIGHT_M, load_model
+from gis.model import BUILDING, GROUND, GisFormatError
+from gis.synthetic import box_city_mesh
+
+UTM = "EPSG:32632"
+OFFSET = np.array([465000.0, 5250000.0, 400.0])  # near Zurich-ish, UTM 32N
+
+
+def _utm_to_ecef(p_utm: np.ndarray) -> np.ndarray:
+    lon, lat, h = Transformer.from_crs(UTM, "EPSG:4979", always_xy=True).transform(*p_utm.T)
+    return geodetic_to_ecef(lat, lon, h)
+
+
+def _model_ecef(m):
+    return m.origin.enu_to_ecef(m.points_enu)
+
+
+def _sidecar(path, crs=UTM, offset=OFFSET, vertical="ellipsoid"):
+    path.with_name(path.name + ".georef.json").write_text(
+        json.dumps({"crs": crs, "offset_m": list(map(float, offset)), "vertical": vertical})
+    )
+
+
+@pytest.fixture(scope="module")
+def city():
+    return box_city_mesh(120.0, seed=3)
+
+
+def _check_city(m, mesh):
+    """Points lie on the city (nearest-surface distance in the CRS) and the up axis is right."""
+    tr = Transformer.from_crs("EPSG:4978", UTM, always_xy=True)
+    x, y, z = tr.transform(*_model_ecef(m).T)
+    p_file = np.stack([x, y, z], 1) - OFFSET
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    dist = scene.compute_distance(o3d.core.Tensor(p_file[::20].astype(np.float32))).numpy()
+    assert np.max(dist) < 2e-3
+    assert abs(p_file[:, 2].max() - mesh.bounds[1, 2]) < 0.5  # roofs up, not sideways
+
+
+def test_ply_mesh_with_sidecar_and_vertex_labels(tmp_path, city):
+    mesh, face_labels = city
+    m2 = mesh.copy()
+    vlab = np.full(len(m2.vertices), BUILDING, np.uint8)
+    vlab[np.unique(m2.faces[face_labels == GROUND])] = GROUND
+    m2.vertex_attributes["classification"] = vlab
+    path = tmp_path / "city.ply"
+    path.write_bytes(trimesh.exchange.ply.export_ply(m2, encoding="binary", include_attributes=True))
+    _sidecar(path)
+    m = load_model(path, sample_spacing_m=2.0)
+    _check_city(m, mesh)
+    assert set(np.unique(m.labels)) == {GROUND, BUILDING}
+    assert m.source_crs.endswith("32632")
+    # ground normals point up in ENU
+    g = m.labels == GROUND
+    assert np.all(np.abs(m.normals_enu[g, 2]) > 0.99)
+
+
+def test_obj_and_glb_meshes(tmp_path, city):
+    mesh, _ = city
+    obj = tmp_path / "city.obj"
+    mesh.export(obj)
+    _sidecar(obj)
+    _check_city(load_model(obj, 2.0), mesh)
+    # glTF is Y-up: write the Z-up city rotated into Y-up, as a glTF exporter would
+    glb = tmp_path / "city.glb"
+    yup = mesh.copy()
+    yup.apply_transform(np.block([[np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0.0]]), np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    glb.write_bytes(trimesh.Scene(yup).export(file_type="glb"))
+    _sidecar(glb)
+    _check_city(load_model(glb, 2.0), mesh)
+
+
+def test_ply_point_cloud_egm96_heights(tmp_path):
+    rng = np.random.default_rng(0)
+    p = rng.uniform([0, 0, 0], [50, 50, 1.0], (500, 3))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    path = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(path), pcd)
+    _sidecar(path, vertical="egm96")
+    m = load_model(path)
+    lon, lat, h_msl = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*(p + OFFSET)[:, :2].T), None, None
+    lon, lat = lon
+    from gis.geodesy import msl_to_ellipsoid
+    expect = geodetic_to_ecef(lat, lon, msl_to_ellipsoid(lat, lon, (p + OFFSET)[:, 2]))
+    np.testing.assert_allclose(_model_ecef(m), expect, atol=2e-3)  # float32 PLY coordinates
+    assert np.all(np.abs(np.linalg.norm(m.normals_enu, axis=1) - 1) < 1e-9)
+
+
+@pytest.mark.parametrize("ext", ["las", "laz"])
+def test_las_laz_with_crs_and_classification(tmp_path, ext):
+    rng = np.random.default_rng(1)
+    p = OFFSET + rng.uniform([0, 0, 0], [80, 80, 20], (2000, 3))
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.add_crs(CRS.from_user_input(UTM))
+    hdr.offsets, hdr.scales = OFFSET, [0.001] * 3
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = p.T
+    las.classification = np.where(p[:, 2] - OFFSET[2] < 1, GROUND, BUILDING).astype(np.uint8)
+    path = tmp_path / f"cloud.{ext}"
+    las.write(path)
+    m = load_model(path)
+    np.testing.assert_allclose(_model_ecef(m), _utm_to_ecef(p), atol=2e-3)
+    np.testing.assert_array_equal(m.labels, np.asarray(las.classification))
+
+
+def _cityjson_cube(size=20.0, h=15.0):
+    v = [[0, 0, 0], [size, 0, 0], [size, size, 0], [0, size, 0], [0, 0, h], [size, 0, h], [size, size, h], [0, size, h]]
+    faces = [[[0, 3, 2, 1]], [[4, 5, 6, 7]], [[0, 1, 5, 4]], [[1, 2, 6, 5]], [[2, 3, 7, 6]], [[3, 0, 4, 7]]]
+    return {
+        "type": "CityJSON", "version": "2.0",
+        "transform": {"scale": [0.001, 0.001, 0.001], "translate": list(OFFSET)},
+        "metadata": {"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/32632"},
+        "CityObjects": {"b1": {"type": "Building", "geometry": [{"type": "Solid", "lod": "2", "boundaries": [faces]}]}},
+        "vertices": (np.asarray(v) * 1000).astype(int).tolist(),
+    }
+
+
+def test_cityjson_building(tmp_path):
+    path = tmp_path / "city.json"
+    path.write_text(json.dumps(_cityjson_cube()))
+    m = load_model(path, sample_spacing_m=1.0)
+    assert np.all(m.labels == BUILDING)
+    tr = Transformer.from_crs("EPSG:4978", UTM, always_xy=True)
+    x, y, z = tr.transform(*_model_ecef(m).T)
+    q = np.stack([x, y, z], 1) - OFFSET
+    assert np.all(q > -1e-3) and np.all(q[:, :2] < 20 + 1e-3) and q[:, 2].max() == pytest.approx(15, abs=1e-3)
+    # every sample lies on a cube face: at least one coordinate at a face plane
+    on_face = np.isclose(q[:, 0], 0, atol=1e-3) | np.isclose(q[:, 0], 20, atol=1e-3) | np.isclose(q[:, 1], 0, atol=1e-3) | \
+        np.isclose(q[:, 1], 20, atol=1e-3) | np.isclose(q[:, 2], 0, atol=1e-3) | np.isclose(q[:, 2], 15, atol=1e-3)
+    assert on_face.all()
+    assert len(m) > 2 * (20 * 20) + 4 * 20 * 15 * 0.9
+
+
+def test_geojson_footprints_height_and_levels(tmp_path):
+    lat0, lon0 = 47.37, 8.54
+    d = 0.0002
+    ring = [[lon0, lat0], [lon0 + d, lat0], [lon0 + d, lat0 + d], [lon0, lat0 + d], [lon0, lat0]]
+    ring2 = [[x + 0.001, y, 410.0] for x, y in ring]
+    fc = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"building": "yes", "building:levels": "4"}, "geometry": {"type": "Polygon", "coordinates": [ring]}},
+        {"type": "Feature", "properties": {"height": 21.5}, "geometry": {"type": "Polygon", "coordinates": [ring2]}},
+    ]}
+    path = tmp_path / "buildings.geojson"
+    path.write_text(json.dumps(fc))
+    m = load_model(path, sample_spacing_m=1.0, ground_h_ellipsoid_m=400.0)
+    assert np.all(m.labels == BUILDING)
+    lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
+    first = lon < lon0 + d + 1e-7
+    assert h[first].max() == pytest.approx(400 + 4 * LEVEL_HEIGHT_M, abs=1e-3)
+    assert h[~first].max() == pytest.approx(410 + 21.5, abs=1e-3)
+    assert h.min() > 399.9
+
+
+def _b3dm(glb: bytes, rtc: np.ndarray) -> bytes:
+    ft = json.dumps({"BATCH_LENGTH": 0, "RTC_CENTER": list(map(float, rtc))}).encode()
+    ft += b" " * ((8 - (28 + len(ft)) % 8) % 8)
+    total = 28 + len(ft) + len(glb)
+    return struct.pack("<4sIIIIII", b"b3dm", 1, total, len(ft), 0, 0, 0) + ft + glb
+
+
+def test_3dtiles_b3dm_tileset(tmp_path):
+    box = trimesh.creation.box(extents=[30, 12, 20])  # Y-up inside the glb: 12 m tall
+    rtc = geodetic_to_ecef(47.37, 8.54, 420.0)
+    (tmp_path / "tiles").mkdir()
+    (tmp_path / "tiles" / "a.b3dm").write_bytes(_b3dm(trimesh.Scene(box).export(file_type="glb"), rtc))
+    # tile transform: rotation so the tile's local z is ECEF up at the site (ENU at rtc)
+    from gis.geodesy import R_ecef_enu
+    T = np.eye(4)
+    T[:3, :3] = R_ecef_enu(47.37, 8.54)
+    T[:3, 3] = rtc - T[:3, :3] @ rtc  # rotate about the RTC centre
+    ts = {"asset": {"version": "1.0"}, "geometricError": 100,
+          "root": {"boundingVolume": {"sphere": [*rtc, 50]}, "geometricError": 10, "refine": "REPLACE",
+                   "transform": T.T.reshape(-1).tolist(),
+                   "children": [{"boundingVolume": {"sphere": [*rtc, 50]}, "geometricError": 0, "content": {"uri": "tiles/a.b3dm"}}]}}
+    (tmp_path / "tileset.json").write_text(json.dumps(ts))
+    m = load_model(tmp_path, sample_spacing_m=1.0)
+    lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
+    enu = m.origin.geodetic_to_enu(lat, lon, h)
+    assert np.ptp(enu[:, 2]) == pytest.approx(12.0, abs=0.05)  # glTF Y became up
+    assert abs(np.mean(lat) - 47.37) < 1e-3 and abs(np.mean(lon) - 8.54) < 1e-3
+
+
+@pytest.mark.parametrize("name,content,problem", [
+    ("bad.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\x00\x01", ""),
+    ("bad.las", b"LASF" + b"\x00" * 50, "LAS"),
+    ("bad.laz", b"not a laz file at all", "LASF"),
+    ("bad.json", b"{\"type\": \"CityJSON\", ", "JSON"),
+    ("bad.geojson", b"{\"type\": \"FeatureCollection\", \"features\": [{\"geometry\": {\"type\": \"Polygon\", \"coordinates\": [[[8, 47]]]}}]}", "feature 0"),
+    ("x.xyz", b"1 2 3\n", "unsupported"),
+    ("x.osm.pbf", b"\x00\x00\x00\x0d\x0a\x09OSMHeader", "pyosmium"),
+    ("lone.b3dm", b"b3dm" + b"\x00" * 40, "tileset"),
+])
+def test_corrupt_or_unsupported_files_fail_clearly(tmp_path, name, content, problem):
+    path = tmp_path / name
+    path.write_bytes(content)
+    if name.endswith(".ply"):
+        _sidecar(path)
+    with pytest.raises(GisFormatError) as e:
+        load_model(path)
+    assert str(path) in str(e.value) and problem in str(e.value)
+
+
+def test_missing_georeference_and_crs(tmp_path, city):
+    mesh, _ = city
+    path = tmp_path / "city.ply"
+    mesh.export(path)
+    with pytest.raises(GisFormatError, match="georef.json sidecar missing"):
+        load_model(path)
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = np.random.default_rng(0).uniform(0, 10, (3, 10))
+    lp = tmp_path / "nocrs.las"
+    las.write(lp)
+    with pytest.raises(GisFormatError, match="no CRS"):
+        load_model(lp)
+    doc = _cityjson_cube()
+    del doc["metadata"]
+    cj = tmp_path / "nocrs.city.json"
+    cj.write_text(json.dumps(doc))
+    with pytest.raises(GisFormatError, match="referenceSystem"):
+        load_model(cj)
