@@ -285,7 +285,7 @@ class LatencyTracker:
 
     window: int = 2000
     max_pending: int = 256
-    _pending: OrderedDict[int, tuple[float, float]]  # seq → (t_capture_s, t_last_mark_s) = field(default_factory=OrderedDict)
+    _pending: OrderedDict[int, tuple[float, float]] = field(default_factory=OrderedDict)  # seq → (t_capture_s, t_last_mark_s)
     _samples: dict[str, deque] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
