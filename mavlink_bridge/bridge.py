@@ -1,0 +1,313 @@
+"""The bridge: link + GNSS monitor + switch policy + emitter, wired.
+
+Threads: ``submit_fix`` runs on the caller's (pipeline) thread and writes the fix to the wire at
+once (fix-to-wire latency is the time spent inside it); one receive thread reads the autopilot,
+answers TIMESYNC, sends our HEARTBEAT, requests streams, manages the EKF origin and runs the
+switch policy every tick (≤ 50 ms).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gis.geodesy import LocalFrame, msl_to_ellipsoid
+from gis.types import GlobalFix
+from mavlink_bridge import emitters
+from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
+from mavlink_bridge.link import Link, load_signing_key
+from mavlink_bridge.monitor import EKF_STATUS_GPS_GLITCH, ESTIMATOR_GPS_GLITCH, GnssMonitor, sample_from_gps_raw
+from mavlink_bridge.policy import BridgeState, SwitchEvent, SwitchPolicy
+from mavlink_bridge.types import GnssStatus
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+log = logging.getLogger(__name__)
+
+TICK_S = 0.05
+LATENCY_SAMPLES = 10000
+
+
+@dataclass
+class BridgeStats:
+    sent: Counter = field(default_factory=Counter)         # message type → count
+    received: Counter = field(default_factory=Counter)     # message type → count (valid, from the autopilot)
+    fix_to_wire_s: list[float] = field(default_factory=list)  # submit_fix entry → written to the socket
+    rejected_frames: int = 0                                # garbage / bad CRC / bad signature
+    link_up: bool = False
+    autopilot: str | None = None                            # what the HEARTBEAT says we talk to
+    origin: tuple[float, float, float] | None = None        # EKF origin lat, lon, alt MSL
+    boot_offset_s: float | None = None                      # our clock − autopilot boot time
+    acks: Counter = field(default_factory=Counter)          # (command, result) → count
+
+
+def _q_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+
+
+class Bridge:
+    def __init__(self, mav_cfg: MavlinkConfig, sw_cfg: SwitchingConfig, clock=time.monotonic):
+        emitters.check_profile(mav_cfg)
+        self.cfg, self.sw_cfg, self.clock = mav_cfg, sw_cfg, clock
+        self._key = load_signing_key(mav_cfg.signing_key_file) if mav_cfg.signing_key_file else None
+        self.monitor = GnssMonitor(sw_cfg, mav_cfg.uere_m)
+        self.policy = SwitchPolicy(sw_cfg)
+        self._lock = threading.Lock()          # monitor / policy / origin / attitude
+        self._stats = BridgeStats()
+        self._latency = deque(maxlen=LATENCY_SAMPLES)
+        self._link: Link | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._origin: LocalFrame | None = None
+        self._q_ned_body: np.ndarray | None = None
+        self._last_emit_s = -math.inf
+        self._last_fix_s: float | None = None   # clock time of the last fix we wrote
+        self._last_fix: GlobalFix | None = None
+        self._last_hb_rx_s: float | None = None
+        self._link_up_since_s: float | None = None
+        self._next_hb_s = 0.0
+        self._next_origin_s = 0.0
+        self._last_boot_ms: int | None = None
+        self._period_s = 1.0 / mav_cfg.rate_hz
+        # ArduPilot reports GPS instance 0 in GPS_RAW_INT and 1 in GPS2_RAW: watch the one that is not ours.
+        self._gnss_msg = "GPS2_RAW" if (mav_cfg.autopilot == "ardupilot" and mav_cfg.output == "gps_input" and mav_cfg.gps_id == 0) else "GPS_RAW_INT"
+        if mav_cfg.autopilot == "px4" and mav_cfg.output in emitters.LOCAL_OUTPUTS and mav_cfg.rate_hz < 20:
+            log.warning("mavlink.rate_hz=%g: PX4 external vision wants >= 20 Hz (drops samples > 200 ms apart)", mav_cfg.rate_hz)
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    def start(self) -> "Bridge":
+        c = self.cfg
+        self._link = Link(c.connect, c.baud, c.source_system, c.source_component, self._key,
+                          c.allow_unsigned, c.reconnect_max_s)
+        self._thread = threading.Thread(target=self._run, name="mavlink-bridge", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._link is not None:
+            self._link.close()
+
+    # ---- public state ----------------------------------------------------------------------
+    @property
+    def state(self) -> BridgeState:
+        return self.policy.state
+
+    def gnss_status(self) -> GnssStatus:
+        with self._lock:
+            return self.monitor.status(self.clock())
+
+    def events(self) -> list[SwitchEvent]:
+        with self._lock:
+            return list(self.policy.events)
+
+    def stats(self) -> BridgeStats:
+        s = self._stats
+        s.fix_to_wire_s = list(self._latency)
+        s.rejected_frames = self._link.rejected if self._link else 0
+        return s
+
+    # ---- hot path --------------------------------------------------------------------------
+    def submit_fix(self, fix: GlobalFix | None) -> None:
+        """Our latest global fix (None = tracking lost: output stops at once)."""
+        t0 = self.clock()
+        with self._lock:
+            self.monitor.on_fix(fix)
+            state = self.policy.state
+            origin, q = self._origin, self._q_ned_body
+        if fix is None or t0 - fix.t_s > self.cfg.max_fix_age_s:
+            self._stop_output("tracking lost" if fix is None else f"fix {t0 - fix.t_s:.2f} s old")
+            return
+        if state is BridgeState.STANDBY and not self.cfg.feed_in_standby:
+            return
+        if t0 - self._last_emit_s < 0.9 * self._period_s:
+            return
+        msg = self._encode(fix, origin, q, t0)
+        if msg is None or self._link is None or not self._link.send(msg):
+            return
+        t1 = self.clock()
+        self._latency.append(t1 - t0)
+        self._stats.sent[msg.get_type()] += 1
+        self._last_emit_s, self._last_fix_s, self._last_fix = t0, t0, fix
+
+    def _encode(self, fix: GlobalFix, origin: LocalFrame | None, q, now_s: float):
+        c, mav = self.cfg, self._link.mav
+        if c.output == "gps_input":
+            return emitters.gps_input(mav, fix, c)
+        if not emitters.trustworthy(fix, c):
+            return None
+        if c.output == "global_position_sensor":
+            return emitters.global_position_sensor(mav, fix, c, now_s)
+        if c.output == "hil_gps":
+            return emitters.hil_gps(mav, fix, c)
+        if origin is None:  # NED needs the EKF origin: nothing until GPS_GLOBAL_ORIGIN is known
+            return None
+        if c.output == "odometry":
+            return emitters.odometry(mav, fix, origin, c, q)
+        return emitters.vision_position_estimate(mav, fix, origin, q)
+
+    def _stop_output(self, why: str) -> None:
+        """Stop emitting; GPS_INPUT gets one NO_FIX so ArduPilot drops it now, not after 4 s."""
+        if self._last_fix_s is None:
+            return
+        self._last_fix_s = None
+        self._last_fix = None
+        log.info("output stopped: %s", why)
+        if self.cfg.output == "gps_input" and self._link is not None and self._link.send(emitters.gps_input(self._link.mav, None, self.cfg)):
+            self._stats.sent["GPS_INPUT"] += 1
+
+    # ---- receive thread --------------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self._link.recv(TICK_S)
+            now = self.clock()
+            if msg is not None:
+                try:
+                    self._handle(msg, now)
+                except Exception:  # one malformed-but-parsable message must not kill the bridge
+                    log.exception("handling %s failed", msg.get_type())
+            self._tick(now)
+
+    def _from_autopilot(self, msg) -> bool:
+        return msg.get_srcSystem() == self.cfg.target_system and msg.get_srcComponent() == self.cfg.target_component
+
+    def _handle(self, msg, now: float) -> None:
+        t = msg.get_type()
+        if t == "TIMESYNC" and msg.tc1 == 0:  # answer the autopilot's timesync request with our clock
+            self._send(self._link.mav.timesync_encode(int(now * 1e9), msg.ts1))
+            return
+        if not self._from_autopilot(msg):
+            return
+        self._stats.received[t] += 1
+        if t == "HEARTBEAT":
+            if self._last_hb_rx_s is None or now - self._last_hb_rx_s > self.cfg.link_timeout_s:
+                self._link_up_since_s = now
+                self._on_link_up(msg)
+            self._last_hb_rx_s = now
+        elif t == self._gnss_msg:
+            sample = sample_from_gps_raw(msg, now)
+            with self._lock:
+                self.monitor.on_sample(sample)
+        elif t == "EKF_STATUS_REPORT":
+            with self._lock:
+                self.monitor.on_ekf_flags(bool(msg.flags & EKF_STATUS_GPS_GLITCH), now)
+        elif t == "ESTIMATOR_STATUS":
+            with self._lock:
+                self.monitor.on_ekf_flags(bool(msg.flags & ESTIMATOR_GPS_GLITCH), now)
+        elif t == "ATTITUDE":
+            with self._lock:
+                self._q_ned_body = _q_from_euler(msg.roll, msg.pitch, msg.yaw)
+        elif t == "GPS_GLOBAL_ORIGIN":
+            self._on_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude / 1000.0)
+        elif t == "SYSTEM_TIME":
+            if self._last_boot_ms is not None and msg.time_boot_ms + 1000 < self._last_boot_ms:
+                log.warning("autopilot rebooted: re-reading its EKF origin and re-requesting streams")
+                with self._lock:
+                    self._origin = None
+                self._request_streams()
+            self._last_boot_ms = msg.time_boot_ms
+            self._stats.boot_offset_s = now - msg.time_boot_ms / 1000.0
+        elif t == "COMMAND_ACK":
+            self._stats.acks[(msg.command, msg.result)] += 1
+
+    def _on_link_up(self, hb) -> None:
+        kind = {mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", mavlink.MAV_AUTOPILOT_PX4: "px4"}.get(hb.autopilot, f"autopilot {hb.autopilot}")
+        self._stats.autopilot, self._stats.link_up = kind, True
+        log.info("link up: %s (sys %d)", kind, hb.get_srcSystem())
+        if kind != self.cfg.autopilot:
+            log.error("connected autopilot is %s but mavlink.autopilot=%s: it may ignore what we send", kind, self.cfg.autopilot)
+        self._request_streams()
+
+    def _on_origin(self, lat: float, lon: float, alt_msl: float) -> None:
+        frame = LocalFrame(lat, lon, float(msl_to_ellipsoid(lat, lon, alt_msl)))
+        with self._lock:
+            changed = self._origin is None or (self._origin.lat0_deg, self._origin.lon0_deg) != (lat, lon)
+            self._origin = frame
+        if changed:
+            log.info("EKF origin %.7f %.7f %.2f m MSL", lat, lon, alt_msl)
+        self._stats.origin = (lat, lon, alt_msl)
+
+    def _send(self, msg) -> None:
+        if self._link.send(msg):
+            self._stats.sent[msg.get_type()] += 1
+
+    def _command(self, command: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self._send(self._link.mav.command_long_encode(self.cfg.target_system, self.cfg.target_component, command, 0, *p))
+
+    def _request_streams(self) -> None:
+        interval_us = lambda hz: 1e6 / hz  # noqa: E731
+        streams = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self.cfg.gnss_stream_hz,
+                   mavlink.MAVLINK_MSG_ID_GPS2_RAW: self.cfg.gnss_stream_hz,
+                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 10.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
+        if self.cfg.autopilot == "ardupilot":
+            streams[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = 2.0
+        else:
+            streams[mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS] = 2.0
+        for msg_id, hz in streams.items():
+            self._command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us(hz))
+        self._command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+
+    def _tick(self, now: float) -> None:
+        if now >= self._next_hb_s:
+            self._next_hb_s = now + 1.0 / self.cfg.heartbeat_hz
+            self._send(self._link.mav.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE))
+        link_up = self._last_hb_rx_s is not None and now - self._last_hb_rx_s <= self.cfg.link_timeout_s
+        if self._stats.link_up and not link_up:
+            log.warning("link down: no autopilot HEARTBEAT for %.1f s", now - self._last_hb_rx_s)
+        self._stats.link_up = link_up
+        # After (re)connecting, give the requested GNSS stream stale_after_s to arrive before judging it.
+        judged = link_up and now - self._link_up_since_s >= self.sw_cfg.stale_after_s
+        with self._lock:
+            status = self.monitor.status(now)
+            event = self.policy.update(status, judged)
+            need_origin = self._origin is None
+        if event is not None:
+            self._on_switch(event)
+        if self._last_fix_s is not None and now - self._last_fix_s > self.cfg.max_fix_age_s:
+            self._stop_output("no fresh fix")
+        if need_origin and self.cfg.output in emitters.LOCAL_OUTPUTS and link_up and now >= self._next_origin_s:
+            self._next_origin_s = now + self.cfg.origin_resend_s
+            self._command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+            fix = self._last_fix or self.monitor.fix
+            if fix is not None and emitters.trustworthy(fix, self.cfg):
+                # ArduPilot drops it before its EKF starts and accepts it once: re-send until it answers.
+                self._send(self._link.mav.set_gps_global_origin_encode(
+                    self.cfg.target_system, round(fix.lat_deg * 1e7), round(fix.lon_deg * 1e7), round(fix.h_msl_m * 1000), 0))
+
+    def _on_switch(self, ev: SwitchEvent) -> None:
+        log.warning("switch %s -> %s at %.2f s: %s", ev.from_state.value, ev.to_state.value, ev.t_s, ev.reason)
+        active = ev.to_state is BridgeState.ACTIVE
+        text = ("TerraSLAM ACTIVE: " if active else "TerraSLAM STANDBY: ") + ev.reason
+        severity = mavlink.MAV_SEVERITY_WARNING if active else mavlink.MAV_SEVERITY_NOTICE
+        self._send(self._link.mav.statustext_encode(severity, text[:50].encode()))
+        if self.cfg.switch_ekf_source:
+            self._switch_source(active)
+
+    def _switch_source(self, active: bool) -> None:
+        c = self.cfg
+        if c.autopilot == "ardupilot" and c.output == "gps_input":
+            # Effective with GPS_AUTO_SWITCH=0 (docs/AUTOPILOTS.md): make our instance primary, or the receiver's.
+            self._param_set(b"GPS_PRIMARY", c.gps_id if active else 1 - c.gps_id, mavlink.MAV_PARAM_TYPE_INT8)
+        elif c.autopilot == "ardupilot":
+            self._command(mavlink.MAV_CMD_SET_EKF_SOURCE_SET, c.ekf_source_set_extnav if active else c.ekf_source_set_gnss)
+        else:
+            # PX4 keeps fusing a (spoofed) receiver that looks healthy: stop GNSS fusion while we lead.
+            self._param_set(b"EKF2_GPS_CTRL", 0 if active else c.px4_gps_ctrl, mavlink.MAV_PARAM_TYPE_INT32)
+
+    def _param_set(self, name: bytes, value: int, ptype: int) -> None:
+        # ArduPilot takes integers as float values; PX4 encodes them bytewise in the float field.
+        v = struct.unpack("<f", struct.pack("<i", value))[0] if self.cfg.autopilot == "px4" else float(value)
+        self._send(self._link.mav.param_set_encode(self.cfg.target_system, self.cfg.target_component, name, v, ptype))
