@@ -1,0 +1,97 @@
+"""SlamPose + current alignment → GlobalFix (TerraSLAM §4.4.2: p_ecef = T_fine·p, then WGS-84).
+
+The covariance is propagated, not guessed: the alignment's information (Eq. 8–10, about its
+centre) is inverted and carried to the vehicle with the lever arm d from that centre
+(J = [−[d]×, I]), plus the scale uncertainty (scale_sigma·|d|), SLAM drift away from the
+alignment's centre (slam_drift_fraction·|d|) and a floor. No fix when tracking has no pose, no
+alignment was accepted, or the alignment belongs to another SLAM map (reset_counter / map_id).
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gis.geodesy import R_NED_ENU, LocalFrame, ecef_to_geodetic, ellipsoid_to_msl
+from gis.types import Alignment, GlobalFix
+from slam.types import SlamPose
+
+
+class Globalizer:
+    def __init__(self, T_body_cam: np.ndarray, slam_drift_fraction: float = 0.01, sigma_floor_m: float = 0.05,
+                 max_velocity_dt_s: float = 1.0) -> None:
+        self.T_cam_body = np.linalg.inv(np.asarray(T_body_cam, float))
+        self.slam_drift_fraction = slam_drift_fraction
+        self.sigma_floor_m = sigma_floor_m
+        self.max_velocity_dt_s = max_velocity_dt_s
+        self._lock = threading.Lock()
+        self._alignment: Alignment | None = None
+        self._cov_center: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._prev: tuple[float, np.ndarray, Alignment] | None = None
+
+    @property
+    def alignment(self) -> Alignment | None:
+        return self._alignment
+
+    def update_alignment(self, a: Alignment) -> None:
+        """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe)."""
+        T = a.T_ecef_slam
+        c_ecef = T.apply(a.center_slam) if a.center_slam is not None else T.t
+        lat, lon, _ = ecef_to_geodetic(c_ecef)
+        R_ecef_enuC = LocalFrame(float(lat), float(lon)).R_ecef_enu
+        w, V = np.linalg.eigh(a.information_6x6)
+        cov6 = (V / np.maximum(w, 1e-12 * max(w[-1], 1e-12))) @ V.T
+        with self._lock:
+            self._alignment = a
+            self._cov_center = (c_ecef, R_ecef_enuC, cov6)
+
+    def fix(self, pose: SlamPose) -> GlobalFix | None:
+        with self._lock:
+            a, cc = self._alignment, self._cov_center
+        if a is None or not pose.state.has_pose:
+            return None
+        if a.reset_counter != pose.reset_counter or a.map_id != pose.map_id:
+            return None
+        T_ecef_body = a.T_ecef_slam.apply_pose(np.asarray(pose.T_slam_cam, float)) @ self.T_cam_body
+        p = T_ecef_body[:3, 3]
+        lat, lon, h = (float(x) for x in ecef_to_geodetic(p))
+        frame = LocalFrame(lat, lon, h)
+        R_ned_ecef = R_NED_ENU @ frame.R_ecef_enu.T
+        R_ned_body = R_ned_ecef @ T_ecef_body[:3, :3]
+        cov_ned = self._cov_ned(p, a, cc, R_ned_ecef)
+        x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
+        v_ned, speed_acc = self._velocity(pose.t_s, p, a, frame, cov_ned)
+        return GlobalFix(
+            t_s=pose.t_s, seq=pose.seq, p_ecef_m=p, lat_deg=lat, lon_deg=lon, h_ellipsoid_m=h,
+            h_msl_m=float(ellipsoid_to_msl(lat, lon, h)), cov_ned_m2=cov_ned,
+            h_acc_m=float(np.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1])), v_acc_m=float(np.sqrt(cov_ned[2, 2])),
+            source=a.source, v_ned_mps=v_ned, speed_acc_mps=speed_acc,
+            yaw_deg=float(np.degrees(np.arctan2(R_ned_body[1, 0], R_ned_body[0, 0])) % 360.0),
+            q_ned_body=np.array([w, x, y, z]), reset_counter=pose.reset_counter,
+        )
+
+    def _cov_ned(self, p_ecef: np.ndarray, a: Alignment, cc, R_ned_ecef: np.ndarray) -> np.ndarray:
+        c_ecef, R_ecef_enuC, cov6 = cc
+        d = R_ecef_enuC.T @ (p_ecef - c_ecef)  # lever arm from the alignment centre, ENU at the centre
+        dist = float(np.linalg.norm(d))
+        J = np.hstack([-np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]]), np.eye(3)])
+        if a.center_slam is None:  # information not about a known point: isotropic sigma only
+            cov_enu = np.eye(3) * a.sigma_m**2
+        else:
+            cov_enu = J @ cov6 @ J.T
+        iso = (a.scale_sigma * dist) ** 2 + (self.slam_drift_fraction * dist) ** 2 + self.sigma_floor_m**2
+        R = R_ned_ecef @ R_ecef_enuC
+        return R @ (cov_enu + iso * np.eye(3)) @ R.T
+
+    def _velocity(self, t_s: float, p: np.ndarray, a: Alignment, frame: LocalFrame, cov_ned: np.ndarray):
+        """NED velocity by differencing consecutive fixes under the same alignment (else None)."""
+        prev, self._prev = self._prev, (t_s, p, a)
+        if prev is None or prev[2] is not a or not 0 < t_s - prev[0] <= self.max_velocity_dt_s:
+            return None, None
+        dt = t_s - prev[0]
+        v = -frame.ecef_to_ned(prev[1]) / dt
+        # Both ends share the alignment, so only the SLAM-relative error between them counts:
+        # the drift fraction of the distance moved, and the floor, per end.
+        rel = np.hypot(self.slam_drift_fraction * np.linalg.norm(v) * dt, self.sigma_floor_m / 10)
+        return v, float(np.sqrt(2) * rel / dt)

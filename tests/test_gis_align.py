@@ -1,0 +1,178 @@
+"""World alignment: fine-tuning recovers a known Sim(3), refuses degenerate/wrong registrations;
+GNSS bootstrap; Globalizer against truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
+from gis.align.fine import FineTuner, enu_sim3
+from gis.config import AlignmentConfig
+from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
+from gis.globalizer import Globalizer
+from gis.model import BUILDING, GisModel
+from gis.sim3 import Sim3, compose
+from gis.synthetic import box_city_model, slam_like_cloud
+from gis.types import Alignment, AlignmentSource
+from slam.types import SlamPose, TrackingState
+
+ORIGIN = LocalFrame(47.3769, 8.5417, 450.0)
+# truth: SLAM frame → ENU, arbitrary rotation, monocular scale, offset
+T_ENU_SLAM = Sim3(3.7, Rotation.from_euler("zyx", [40, 5, -3], degrees=True).as_matrix(), np.array([30.0, 20.0, 5.0]))
+T_ECEF_SLAM = compose(enu_sim3(ORIGIN), T_ENU_SLAM)
+
+
+@pytest.fixture(scope="module")
+def city() -> GisModel:
+    return box_city_model(600.0, ORIGIN, seed=1, spacing_m=1.0)
+
+
+def _perturbed(dscale=1.03, drot_deg=(1.0, 0.3, 0.2), dt=(0.8, -0.6, 0.3)) -> Alignment:
+    dT = Sim3(dscale, Rotation.from_euler("zyx", drot_deg, degrees=True).as_matrix(), np.array(dt))
+    return Alignment(compose(enu_sim3(ORIGIN), compose(dT, T_ENU_SLAM)), AlignmentSource.ROUGH, 0.0, 0, np.eye(6), 1.0)
+
+
+def _slam(p_enu: np.ndarray) -> np.ndarray:
+    return T_ENU_SLAM.inverse().apply(p_enu)
+
+
+def test_fine_recovers_known_sim3_with_scale(city):
+    p_slam = _slam(slam_like_cloud(city, np.array([20.0, -10, 0]), 60, 3000, noise_m=0.05, seed=2))
+    reg = FineTuner(city).register(p_slam, _perturbed(), t_s=1.0, reset_counter=0)
+    assert reg.reason == "ok", reg.reason
+    a = reg.alignment
+    err = np.linalg.norm(a.T_ecef_slam.apply(p_slam) - T_ECEF_SLAM.apply(p_slam), axis=1)
+    assert err.mean() < 0.03
+    assert a.T_ecef_slam.scale == pytest.approx(T_ECEF_SLAM.scale, rel=1e-3)
+    assert a.source is AlignmentSource.FINE and a.fitness > 0.8 and 0.03 < a.rmse_m < 0.08
+    # information is positive definite and the reported sigma is consistent with it
+    assert np.all(np.linalg.eigvalsh(a.information_6x6) > 0)
+    assert 0 < a.sigma_m < 0.05
+
+
+def test_fine_refuses_single_facade(city):
+    # SLAM points on one wall of one building only: translation along the wall is unobservable
+    c = np.array([20.0, -10, 0])
+    idx = city.crop(c, 150)
+    b = idx[city.labels[idx] == BUILDING]
+    walls = b[np.abs(city.normals_enu[b, 2]) < 0.1]
+    n0 = city.normals_enu[walls[0]]
+    d0 = city.points_enu[walls[0]] @ n0
+    facade = walls[(np.abs(city.normals_enu[walls] @ n0 - 1) < 1e-6) & (np.abs(city.points_enu[walls] @ n0 - d0) < 1e-6)]
+    assert len(facade) >= 50
+    rng = np.random.default_rng(3)
+    p_slam = _slam(city.points_enu[facade] + rng.normal(0, 0.03, (len(facade), 3)))
+    cfg = AlignmentConfig(min_points=20, source_voxel_m=0.2)
+    reg = FineTuner(city, cfg).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(0.3, 0.3, 0.0)), 1.0, 0)
+    assert reg.alignment is None
+    assert "degenerate" in reg.reason or "fitness" in reg.reason
+
+
+def test_fine_rejects_wrong_place_and_big_jump(city):
+    p_slam = _slam(slam_like_cloud(city, np.array([20.0, -10, 0]), 60, 2000, noise_m=0.05, seed=4))
+    # guess 40 m off: the cloud lands on other buildings
+    reg = FineTuner(city).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(40.0, 0, 0)), 1.0, 0)
+    assert reg.alignment is None and reg.reason
+    # a correct registration that moves the map more than max_jump_m is refused too
+    cfg = AlignmentConfig(max_jump_m=0.5, fpfh_fallback=False)
+    reg = FineTuner(city, cfg).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(1.5, 0, 0)), 1.0, 0)
+    assert reg.alignment is None and "jump" in reg.reason
+    # too few points
+    reg = FineTuner(city).register(p_slam[:10], _perturbed(), 1.0, 0)
+    assert reg.alignment is None and "SLAM points" in reg.reason
+
+
+def _circle_flight(n: int, radius_m: float = 80.0, alt_m: float = 40.0):
+    """Camera centres in ENU and camera→ENU rotations of a circular flight looking forward-down."""
+    th = np.linspace(0, 1.5 * np.pi, n)
+    p = np.stack([radius_m * np.cos(th), radius_m * np.sin(th), alt_m + 5 * np.sin(3 * th)], 1)
+    R = []
+    for t in th:
+        yaw_enu = t + np.pi / 2  # heading along the circle (ENU, from east, CCW)
+        fwd = np.array([np.cos(yaw_enu), np.sin(yaw_enu), 0.0])
+        # camera: z forward-down 30°, x right, y down
+        z = np.cos(np.radians(30)) * fwd + np.array([0, 0, -np.sin(np.radians(30))])
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        R.append(np.stack([x, np.cross(z, x), z], 1))
+    return p, np.array(R)
+
+
+def test_gnss_bootstrap_recovers_sim3_and_refuses_straight_line():
+    p_enu, _ = _circle_flight(60)
+    rng = np.random.default_rng(5)
+    p_ecef = ORIGIN.enu_to_ecef(p_enu + rng.normal(0, 0.5, p_enu.shape))
+    p_slam = _slam(p_enu)
+    a = gnss_bootstrap(p_slam, p_ecef, t_s=3.0, sigma_gnss_m=0.5)
+    err = np.linalg.norm(a.T_ecef_slam.apply(p_slam) - T_ECEF_SLAM.apply(p_slam), axis=1)
+    assert a.source is AlignmentSource.GNSS
+    assert err.mean() < 0.5 and err.mean() < 4 * a.sigma_m + 0.2
+    assert a.T_ecef_slam.scale == pytest.approx(T_ENU_SLAM.scale, rel=0.02)
+    line = np.stack([np.linspace(0, 100, 30), np.zeros(30), np.full(30, 40.0)], 1)
+    with pytest.raises(DegenerateAlignment):
+        gnss_bootstrap(_slam(line), ORIGIN.enu_to_ecef(line + rng.normal(0, 0.5, line.shape)), 0.0)
+
+
+def _pose(T_slam_cam, state=TrackingState.OK, reset=0, t=0.0, seq=0):
+    return SlamPose(t_s=t, seq=seq, T_slam_cam=T_slam_cam, state=state, reset_counter=reset)
+
+
+def test_globalizer_no_fix_without_pose_alignment_or_same_map():
+    g = Globalizer(np.eye(4))
+    T = np.eye(4)
+    assert g.fix(_pose(T)) is None  # no alignment yet
+    a = _perturbed()
+    g.update_alignment(Alignment(a.T_ecef_slam, a.source, 0.0, 0, np.eye(6) * 100, 0.1, center_slam=np.zeros(3)))
+    assert g.fix(_pose(T, TrackingState.LOST)) is None
+    assert g.fix(_pose(T, reset=1)) is None
+    assert g.fix(_pose(T)) is not None
+
+
+def test_globalizer_against_truth_on_simulated_flight(city):
+    """Flight over the box city; SLAM = truth in a scaled/rotated frame with drift noise; fine-tune
+    every 40 frames from sparse points seen near the vehicle; fixes checked against truth."""
+    p_enu, R_enu_cam = _circle_flight(240)
+    rng = np.random.default_rng(7)
+    tuner = FineTuner(city)
+    # mount: camera = body rotated (FRD body, camera z forward); use identity-like permutation
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, :3] = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0.0]])
+    glob = Globalizer(T_body_cam, slam_drift_fraction=0.01)
+    alignment = _perturbed(dscale=1.02, drot_deg=(0.8, 0.2, 0.1), dt=(0.7, -0.5, 0.2))
+    walk = np.zeros(3)
+    errs, sig_h, n_fixes = [], [], 0
+    for k in range(len(p_enu)):
+        walk = walk + rng.normal(0, 0.002, 3)  # slow SLAM drift (metres, ENU)
+        if k % 40 == 0:
+            seen = slam_like_cloud(city, p_enu[k], 70, 2500, noise_m=0.05, seed=k)
+            reg = tuner.register(_slam(seen + walk), alignment, float(k), 0, center_slam=_slam(p_enu[k] + walk))
+            if reg.alignment is not None:
+                alignment = reg.alignment
+                glob.update_alignment(alignment)
+        T_enu_cam = np.eye(4)
+        T_enu_cam[:3, :3], T_enu_cam[:3, 3] = R_enu_cam[k], p_enu[k] + walk + rng.normal(0, 0.02, 3)
+        T_slam_cam = np.eye(4)
+        T_slam_cam[:3, :3] = T_ENU_SLAM.R.T @ R_enu_cam[k]
+        T_slam_cam[:3, 3] = _slam(T_enu_cam[:3, 3])
+        fix = glob.fix(_pose(T_slam_cam, t=k / 10, seq=k))
+        if fix is None:
+            continue
+        n_fixes += 1
+        # truth: body position = camera position (mount has no lever arm) in ECEF
+        truth = ORIGIN.enu_to_ecef(p_enu[k])
+        ned_err = LocalFrame(fix.lat_deg, fix.lon_deg, fix.h_ellipsoid_m).ecef_to_ned(truth)
+        errs.append(np.linalg.norm(ned_err))
+        sig_h.append((np.linalg.norm(ned_err[:2]), fix.h_acc_m))
+        lat, lon, h = ecef_to_geodetic(fix.p_ecef_m)
+        assert np.allclose(geodetic_to_ecef(lat, lon, h), fix.p_ecef_m, atol=1e-6)
+        assert fix.h_msl_m < fix.h_ellipsoid_m  # geoid is ~48 m above the ellipsoid in Zurich
+        # heading: camera looks along the circle tangent; body x = camera z
+        fwd_enu = R_enu_cam[k][:, 2]
+        yaw_true = np.degrees(np.arctan2(fwd_enu[0], fwd_enu[1])) % 360
+        assert abs((fix.yaw_deg - yaw_true + 180) % 360 - 180) < 1.0
+    assert n_fixes >= 0.95 * len(p_enu)
+    errs = np.asarray(errs)
+    assert errs.mean() < 0.15 and np.percentile(errs, 99) < 0.5
+    e_h, s_h = np.asarray(sig_h).T
+    assert np.mean(e_h > 3 * s_h) <= 0.01
