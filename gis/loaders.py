@@ -407,25 +407,29 @@ def extrude_footprint(rings_enu: list[np.ndarray], height_m: float, spacing_m: f
 
 # --- 3D Tiles --------------------------------------------------------------------------------
 
-def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0) -> GisModel:
-    """Leaf tiles of a 3D Tiles tileset (b3dm or glb content) → one model."""
+def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0, skip_missing: bool = False) -> GisModel:
+    """Leaf tiles of a 3D Tiles tileset (b3dm or glb content) → one model.
+
+    skip_missing: leave out tiles whose content file is absent (a partial download mirror, see
+    gis.providers) instead of failing."""
     models: list[GisModel] = []
-    _walk_tileset(tileset_path, np.eye(4), sample_spacing_m, models, depth=0)
+    _walk_tileset(tileset_path, np.eye(4), sample_spacing_m, models, 0, skip_missing)
     if not models:
         raise GisFormatError(tileset_path, "tileset has no b3dm/glb content in its leaf tiles")
     return merge_models(models, tileset_path)
 
 
-def _walk_tileset(path: Path, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int) -> None:
+def _walk_tileset(path: Path, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int, skip: bool) -> None:
     if depth > 16:
         raise GisFormatError(path, "external tilesets nested deeper than 16")
     doc = _read_json(path)
     if "root" not in doc:
         raise GisFormatError(path, "tileset.json without 'root'")
-    _walk_tile(path, doc["root"], T_parent, spacing, out, depth)
+    _walk_tile(path, doc["root"], T_parent, spacing, out, depth, skip)
 
 
-def _walk_tile(ts_path: Path, tile: dict, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int) -> None:
+def _walk_tile(ts_path: Path, tile: dict, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int,
+               skip: bool) -> None:
     T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
     children = tile.get("children") or []
     contents = ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or [])
@@ -433,13 +437,15 @@ def _walk_tile(ts_path: Path, tile: dict, T_parent: np.ndarray, spacing: float, 
         uri = c.get("uri") or c.get("url")
         if not uri:
             continue
-        cpath = ts_path.parent / uri
+        cpath = ts_path.parent / uri.split("?")[0]
+        if skip and not cpath.is_file():
+            continue
         if uri.lower().endswith(".json"):
-            _walk_tileset(cpath, T, spacing, out, depth + 1)
+            _walk_tileset(cpath, T, spacing, out, depth + 1, skip)
         elif not children:
             out.append(_load_tile_content(cpath, T, spacing))
     for ch in children:
-        _walk_tile(ts_path, ch, T, spacing, out, depth)
+        _walk_tile(ts_path, ch, T, spacing, out, depth, skip)
 
 
 def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:

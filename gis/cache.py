@@ -1,0 +1,163 @@
+"""GIS cache (TerraSLAM §6: Pre-fetch, SaveCache): models + per-site transforms in SQLite.
+
+Layout under ``root``: ``index.sqlite`` (tables ``models`` and ``transforms``) and
+``models/<sha256>.npz`` (the GisModel arrays). Every model file and transform row carries a
+SHA-256 content hash that is checked on load; a mismatch raises CacheCorrupt naming the entry.
+A site covers the disc of ``radius_m`` around its model's ENU origin; ``prefetch`` returns the
+nearest site covering a position, with its T_rough and latest T_fine.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gis.geodesy import LocalFrame
+from gis.model import GisModel
+from gis.sim3 import Sim3
+
+KINDS = ("rough", "fine")
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS models (
+    site_id TEXT PRIMARY KEY, lat0_deg REAL, lon0_deg REAL, h0_ellipsoid_m REAL, radius_m REAL,
+    file TEXT, sha256 TEXT, source_crs TEXT, source_path TEXT, n_points INTEGER, saved_unix_s REAL);
+CREATE TABLE IF NOT EXISTS transforms (
+    site_id TEXT, kind TEXT, matrix_json TEXT, meta_json TEXT, sha256 TEXT, saved_unix_s REAL,
+    PRIMARY KEY (site_id, kind));
+"""
+
+
+class CacheCorrupt(RuntimeError):
+    """A cached file or row does not match its stored content hash (or is missing)."""
+
+
+@dataclass(frozen=True)
+class CacheEntry:
+    site_id: str
+    origin: LocalFrame
+    radius_m: float
+    model_file: Path
+    sha256: str
+    source_crs: str
+    source_path: str
+    n_points: int
+    T_rough: Sim3 | None = None
+    T_fine: Sim3 | None = None
+    meta: dict = field(default_factory=dict)
+
+
+class GisCache:
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root).expanduser()
+        (self.root / "models").mkdir(parents=True, exist_ok=True)
+        self.db_path = self.root / "index.sqlite"
+        with self._db() as db:
+            db.executescript(_SCHEMA)
+
+    def _db(self) -> sqlite3.Connection:
+        return sqlite3.connect(self.db_path, timeout=10.0)
+
+    # --- SaveCache ---------------------------------------------------------------------------
+    def save_model(self, model: GisModel, site_id: str | None = None) -> str:
+        """Store a model (content-addressed .npz) and index it; returns its site id."""
+        tmp = self.root / "models" / f".tmp-{time.time_ns()}.npz"
+        np.savez(
+            tmp, points_enu=model.points_enu, normals_enu=model.normals_enu, labels=model.labels,
+            origin=np.array([model.origin.lat0_deg, model.origin.lon0_deg, model.origin.h0_ellipsoid_m]),
+        )
+        digest = _sha256_file(tmp)
+        final = self.root / "models" / f"{digest}.npz"
+        tmp.replace(final)
+        site_id = site_id or f"{model.source_path.stem}-{digest[:8]}"
+        radius = float(np.max(np.linalg.norm(model.points_enu[:, :2], axis=1)))
+        with self._db() as db:
+            db.execute(
+                "INSERT OR REPLACE INTO models VALUES (?,?,?,?,?,?,?,?,?,?,?)",
+                (site_id, model.origin.lat0_deg, model.origin.lon0_deg, model.origin.h0_ellipsoid_m, radius,
+                 final.name, digest, model.source_crs, str(model.source_path), len(model), time.time()),
+            )
+        return site_id
+
+    def save_transform(self, site_id: str, kind: str, T_ecef_slam: Sim3, meta: dict | None = None) -> None:
+        """Store T_rough or (replacing the previous) the latest T_fine of a site."""
+        if kind not in KINDS:
+            raise ValueError(f"transform kind must be one of {KINDS}, got {kind!r}")
+        if self._row(site_id) is None:
+            raise KeyError(f"no cached model for site {site_id!r}")
+        mj = json.dumps(T_ecef_slam.matrix().tolist())
+        meta_j = json.dumps(meta or {}, sort_keys=True, default=str)
+        with self._db() as db:
+            db.execute("INSERT OR REPLACE INTO transforms VALUES (?,?,?,?,?,?)",
+                       (site_id, kind, mj, meta_j, _sha256_text(mj + meta_j), time.time()))
+
+    # --- load / Pre-fetch --------------------------------------------------------------------
+    def load_model(self, site_id: str) -> GisModel:
+        row = self._row(site_id)
+        if row is None:
+            raise KeyError(f"no cached model for site {site_id!r}")
+        path = self.root / "models" / row["file"]
+        if not path.is_file():
+            raise CacheCorrupt(f"site {site_id!r}: model file {path} is missing")
+        if _sha256_file(path) != row["sha256"]:
+            raise CacheCorrupt(f"site {site_id!r}: model file {path} does not match its SHA-256 (corrupted)")
+        with np.load(path) as z:
+            o = z["origin"]
+            return GisModel(z["points_enu"], z["normals_enu"], z["labels"], LocalFrame(*map(float, o)),
+                            row["source_crs"], Path(row["source_path"]))
+
+    def load_transform(self, site_id: str, kind: str) -> tuple[Sim3, dict] | None:
+        with self._db() as db:
+            r = db.execute("SELECT matrix_json, meta_json, sha256 FROM transforms WHERE site_id=? AND kind=?",
+                           (site_id, kind)).fetchone()
+        if r is None:
+            return None
+        if _sha256_text(r[0] + r[1]) != r[2]:
+            raise CacheCorrupt(f"site {site_id!r}: stored T_{kind} does not match its SHA-256 (corrupted)")
+        return Sim3.from_matrix(np.asarray(json.loads(r[0]))), json.loads(r[1])
+
+    def entries(self) -> list[CacheEntry]:
+        with self._db() as db:
+            db.row_factory = sqlite3.Row
+            rows = db.execute("SELECT * FROM models ORDER BY site_id").fetchall()
+        return [self._entry(r) for r in rows]
+
+    def prefetch(self, lat_deg: float, lon_deg: float) -> CacheEntry | None:
+        """The nearest cached site whose coverage contains (lat, lon), with its transforms; else None."""
+        best = None
+        for e in self.entries():
+            d = float(np.linalg.norm(e.origin.geodetic_to_enu(lat_deg, lon_deg, e.origin.h0_ellipsoid_m)[:2]))
+            if d <= e.radius_m and (best is None or d < best[0]):
+                best = (d, e)
+        return None if best is None else best[1]
+
+    def _row(self, site_id: str):
+        with self._db() as db:
+            db.row_factory = sqlite3.Row
+            return db.execute("SELECT * FROM models WHERE site_id=?", (site_id,)).fetchone()
+
+    def _entry(self, r) -> CacheEntry:
+        rough = self.load_transform(r["site_id"], "rough")
+        fine = self.load_transform(r["site_id"], "fine")
+        meta = {k: t[1] for k, t in (("rough", rough), ("fine", fine)) if t}
+        return CacheEntry(
+            r["site_id"], LocalFrame(r["lat0_deg"], r["lon0_deg"], r["h0_ellipsoid_m"]), r["radius_m"],
+            self.root / "models" / r["file"], r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
+            rough[0] if rough else None, fine[0] if fine else None, meta,
+        )
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _sha256_text(s: str) -> str:
+    return hashlib.sha256(s.encode("utf-8")).hexdigest()

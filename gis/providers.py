@@ -1,0 +1,152 @@
+"""Fetch (TerraSLAM §6 "3D GIS API"): obtain models within a radius of a rough position.
+
+Providers:
+- ``LocalProvider(paths)``: model files / 3D Tiles directories on disk; keeps those with a point
+  within the radius.
+- ``HttpTilesProvider(tileset_url, download_dir, timeout_s)``: a 3D Tiles server over HTTP(S)
+  (Cesium ion / Google Photorealistic 3D Tiles style ``tileset.json``). Downloads the tileset,
+  the external tilesets and the leaf contents whose bounding volume comes within the radius, into
+  ``download_dir`` mirroring the URL paths (already downloaded files are reused: the cache), with
+  a timeout per request; then loads the local mirror. API keys go in the URL's query, which is
+  kept for every request.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urljoin, urlsplit
+
+import numpy as np
+import requests
+
+from gis.geodesy import LocalFrame, geodetic_to_ecef
+from gis.loaders import load_3dtiles, load_model
+from gis.model import GisFormatError, GisModel, merge_models
+
+log = logging.getLogger(__name__)
+
+
+class FetchError(RuntimeError):
+    """A provider could not obtain a model (network error, timeout, bad response); names the URL."""
+
+
+@dataclass(frozen=True)
+class LocalProvider:
+    paths: tuple[Path, ...]
+    sample_spacing_m: float = 1.0
+
+    def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
+        out = []
+        for p in self.paths:
+            for f in _model_files(Path(p)):
+                m = load_model(f, self.sample_spacing_m)
+                c = m.origin.geodetic_to_enu(lat_deg, lon_deg, m.origin.h0_ellipsoid_m)
+                if np.min(np.linalg.norm(m.points_enu[:, :2] - c[:2], axis=1)) <= radius_m:
+                    out.append(m)
+        return out
+
+
+def _model_files(p: Path) -> list[Path]:
+    if p.is_file() or (p / "tileset.json").is_file():
+        return [p]
+    if not p.is_dir():
+        raise GisFormatError(p, "no such file or directory")
+    suffixes = (".ply", ".obj", ".glb", ".gltf", ".las", ".laz", ".json", ".geojson")
+    return sorted(f for f in p.iterdir() if f.suffix.lower() in suffixes and not f.name.endswith(".georef.json"))
+
+
+@dataclass(frozen=True)
+class HttpTilesProvider:
+    tileset_url: str
+    download_dir: Path
+    timeout_s: float = 30.0
+    sample_spacing_m: float = 1.0
+
+    def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
+        centre = geodetic_to_ecef(lat_deg, lon_deg, 0.0)
+        local = self._download(self.tileset_url, np.eye(4), centre, radius_m, depth=0)
+        try:
+            return [load_3dtiles(local, self.sample_spacing_m, skip_missing=True)]
+        except GisFormatError as e:
+            if "no b3dm/glb content" in str(e):
+                return []
+            raise
+
+    def _local_path(self, url: str) -> Path:
+        return self.download_dir / urlsplit(url).netloc.replace(":", "_") / urlsplit(url).path.lstrip("/")
+
+    def _get(self, url: str) -> Path:
+        dst = self._local_path(url)
+        if dst.is_file():
+            return dst
+        query = urlsplit(self.tileset_url).query
+        full = url if urlsplit(url).query or not query else f"{url}?{query}"
+        try:
+            r = requests.get(full, timeout=self.timeout_s)
+            r.raise_for_status()
+        except requests.RequestException as e:
+            raise FetchError(f"{url}: {type(e).__name__}: {e}") from None
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dst.with_name(dst.name + ".part")
+        tmp.write_bytes(r.content)
+        tmp.replace(dst)
+        return dst
+
+    def _download(self, url: str, T_parent: np.ndarray, centre: np.ndarray, radius_m: float, depth: int) -> Path:
+        if depth > 16:
+            raise FetchError(f"{url}: external tilesets nested deeper than 16")
+        path = self._get(url)
+        try:
+            doc = json.loads(path.read_text())
+            self._walk(url, doc["root"], T_parent, centre, radius_m, depth)
+        except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as e:
+            path.unlink(missing_ok=True)
+            raise FetchError(f"{url}: not a 3D Tiles tileset ({type(e).__name__}: {e})") from None
+        return path
+
+    def _walk(self, base: str, tile: dict, T_parent: np.ndarray, centre, radius_m, depth) -> None:
+        T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
+        if not _near(tile.get("boundingVolume", {}), T, centre, radius_m):
+            return
+        children = tile.get("children") or []
+        for c in ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or []):
+            uri = c.get("uri") or c.get("url")
+            if not uri:
+                continue
+            url = urljoin(base, uri)
+            if uri.lower().split("?")[0].endswith(".json"):
+                self._download(url, T, centre, radius_m, depth + 1)
+            elif not children:
+                self._get(url)
+        for ch in children:
+            self._walk(base, ch, T, centre, radius_m, depth)
+
+
+def _near(bv: dict, T: np.ndarray, centre: np.ndarray, radius_m: float) -> bool:
+    """Does a 3D Tiles bounding volume come within radius_m of centre (ECEF)? Unknown → yes."""
+    if "sphere" in bv:
+        c = T[:3, :3] @ np.asarray(bv["sphere"][:3]) + T[:3, 3]
+        return float(np.linalg.norm(c - centre)) <= radius_m + bv["sphere"][3]
+    if "box" in bv:
+        b = np.asarray(bv["box"], float)
+        c = T[:3, :3] @ b[:3] + T[:3, 3]
+        half = float(np.sum(np.linalg.norm(b[3:].reshape(3, 3), axis=1)))
+        return float(np.linalg.norm(c - centre)) <= radius_m + half
+    if "region" in bv:  # [west, south, east, north] rad, [min h, max h] m
+        w, s, e, n, _, _ = bv["region"]
+        lat, lon = np.degrees((s + n) / 2), np.degrees((w + e) / 2)
+        f = LocalFrame(float(lat), float(lon))
+        corner = f.geodetic_to_enu(np.degrees(n), np.degrees(e), 0.0)
+        c = f.ecef_to_enu(centre)
+        return float(np.linalg.norm(c[:2])) <= radius_m + float(np.linalg.norm(corner[:2]))
+    return True
+
+
+def fetch_model(providers: list, lat_deg: float, lon_deg: float, radius_m: float, source: str = "fetch") -> GisModel:
+    """All models the providers find within radius_m of (lat, lon), merged; FetchError if none."""
+    models = [m for p in providers for m in p.fetch(lat_deg, lon_deg, radius_m)]
+    if not models:
+        raise FetchError(f"no GIS model within {radius_m:.0f} m of {lat_deg:.6f}, {lon_deg:.6f}")
+    return models[0] if len(models) == 1 else merge_models(models, source)

@@ -1,0 +1,121 @@
+"""GIS cache round trip with hash checks; providers (local files, 3D Tiles over HTTP on 127.0.0.1)."""
+from __future__ import annotations
+
+import functools
+import http.server
+import json
+import threading
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from gis.cache import CacheCorrupt, GisCache
+from gis.geodesy import LocalFrame, R_ecef_enu, geodetic_to_ecef
+from gis.providers import FetchError, HttpTilesProvider, LocalProvider, fetch_model
+from gis.sim3 import Sim3
+from gis.synthetic import box_city_model
+from test_gis_loaders import _b3dm
+
+ORIGIN = LocalFrame(47.3769, 8.5417, 450.0)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return box_city_model(200.0, ORIGIN, seed=2, spacing_m=2.0)
+
+
+def test_cache_round_trip_prefetch_and_hash_checks(tmp_path, model):
+    cache = GisCache(tmp_path / "cache")
+    site = cache.save_model(model, "zurich")
+    T_rough = Sim3(2.5, Rotation.from_euler("z", 33, degrees=True).as_matrix(), ORIGIN.origin_ecef_m)
+    T_fine = Sim3(2.51, Rotation.from_euler("z", 33.2, degrees=True).as_matrix(), ORIGIN.origin_ecef_m + 0.3)
+    cache.save_transform(site, "rough", T_rough, {"error_m": 0.4})
+    cache.save_transform(site, "fine", T_rough)
+    cache.save_transform(site, "fine", T_fine, {"t_s": 12.0})  # latest replaces
+    # a fresh cache object (new process) sees the same content
+    cache2 = GisCache(tmp_path / "cache")
+    m2 = cache2.load_model(site)
+    np.testing.assert_array_equal(m2.points_enu, model.points_enu)
+    np.testing.assert_array_equal(m2.labels, model.labels)
+    assert m2.origin == model.origin
+    e = cache2.prefetch(*ORIGIN.enu_to_geodetic(np.array([30.0, -40.0, 0]))[:2])
+    assert e is not None and e.site_id == "zurich"
+    np.testing.assert_allclose(e.T_rough.matrix(), T_rough.matrix(), atol=1e-9)
+    np.testing.assert_allclose(e.T_fine.matrix(), T_fine.matrix(), atol=1e-9)
+    assert e.meta == {"rough": {"error_m": 0.4}, "fine": {"t_s": 12.0}}
+    assert cache2.prefetch(*ORIGIN.enu_to_geodetic(np.array([3000.0, 0, 0]))[:2]) is None
+    with pytest.raises(ValueError, match="kind"):
+        cache2.save_transform(site, "medium", T_fine)
+    # corrupt the model file: load refuses, naming the site and file
+    f = e.model_file
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f.write_bytes(bytes(data))
+    with pytest.raises(CacheCorrupt, match="zurich.*SHA-256"):
+        cache2.load_model(site)
+    # tamper with a stored transform row
+    import sqlite3
+    with sqlite3.connect(cache2.db_path) as db:
+        db.execute("UPDATE transforms SET matrix_json=replace(matrix_json, '2.5', '2.6') WHERE kind='rough'")
+    with pytest.raises(CacheCorrupt, match="T_rough"):
+        cache2.load_transform(site, "rough")
+
+
+def test_local_provider_radius(tmp_path, model):
+    mesh = trimesh.creation.box(extents=[20, 20, 10])
+    path = tmp_path / "b.ply"
+    mesh.export(path)
+    path.with_name("b.ply.georef.json").write_text(json.dumps({"crs": "EPSG:32632", "offset_m": [465000, 5250000, 400], "vertical": "ellipsoid"}))
+    from pyproj import Transformer
+    lon, lat = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True).transform(465000 + 500, 5250000)
+    prov = LocalProvider((tmp_path,))
+    assert len(prov.fetch(lat, lon, 1000.0)) == 1
+    assert prov.fetch(lat, lon, 100.0) == []
+    with pytest.raises(FetchError, match="no GIS model"):
+        fetch_model([prov], lat, lon, 100.0)
+
+
+@pytest.fixture()
+def tile_server(tmp_path):
+    root = tmp_path / "srv"
+    (root / "t").mkdir(parents=True)
+    tiles = []
+    for i, (lat, lon) in enumerate([(47.3769, 8.5417), (47.4769, 8.5417)]):  # second one ~11 km north
+        rtc = geodetic_to_ecef(lat, lon, 450.0)
+        box = trimesh.creation.box(extents=[30, 12, 20])
+        (root / "t" / f"{i}.b3dm").write_bytes(_b3dm(trimesh.Scene(box).export(file_type="glb"), np.zeros(3)))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_ecef_enu(lat, lon), rtc
+        tiles.append({"boundingVolume": {"sphere": [0, 0, 0, 30]}, "geometricError": 0,
+                      "transform": T.T.reshape(-1).tolist(), "content": {"uri": f"t/{i}.b3dm"}})
+    (root / "tileset.json").write_text(json.dumps({"asset": {"version": "1.0"}, "geometricError": 100, "root": {
+        "boundingVolume": {"sphere": [0, 0, 0, 7e6]}, "geometricError": 50, "children": tiles}}))
+    requests_seen = []
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *a):
+            requests_seen.append(self.path)
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(root)))
+    th = threading.Thread(target=srv.serve_forever, daemon=True)
+    th.start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}", requests_seen
+    srv.shutdown()
+
+
+def test_http_tiles_provider_radius_cache_and_errors(tmp_path, tile_server):
+    url, seen = tile_server
+    prov = HttpTilesProvider(f"{url}/tileset.json?key=abc", tmp_path / "dl", timeout_s=5.0)
+    m = fetch_model([prov], 47.3769, 8.5417, 10_000.0)
+    lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
+    assert abs(lat.mean() - 47.3769) < 1e-3  # only the near tile
+    assert any("0.b3dm?key=abc" in s for s in seen) and not any("1.b3dm" in s for s in seen)
+    n = len(seen)
+    fetch_model([prov], 47.3769, 8.5417, 10_000.0)  # second fetch: served from the download cache
+    assert len(seen) == n
+    with pytest.raises(FetchError, match="404"):
+        HttpTilesProvider(f"{url}/missing.json", tmp_path / "dl2", timeout_s=5.0).fetch(47.3, 8.5, 100.0)
+    with pytest.raises(FetchError, match="127.0.0.1:9"):
+        HttpTilesProvider("http://127.0.0.1:9/tileset.json", tmp_path / "dl3", timeout_s=2.0).fetch(47.3, 8.5, 100.0)
