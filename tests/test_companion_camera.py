@@ -394,3 +394,15 @@ def test_stream_absent_at_start_is_retried(calib_path: Path) -> None:
         before = src.stats()
         assert src.read(0.1) is None
     assert before.read_failures >= 1 and before.grabbed == 0 and before.reopens >= 1
+
+
+def test_sim_source_with_the_real_simulator() -> None:
+    sim = pytest.importorskip("companion.sim")
+    scenario = sim.make_scenario("nominal", n_frames=4)
+    with open_sim_source(scenario.steps(), scenario.camera, realtime=False, lossless=True) as src:
+        frames = _drain(src, timeout_s=120.0)
+        steps = [src.capture_info(f.seq).item for f in frames]
+    assert len(frames) == 4 and src.camera_model is scenario.camera
+    assert all(f.image.shape[:2] == (scenario.camera.height_px, scenario.camera.width_px) for f in frames)
+    assert [f.t_s for f in frames] == [s.frame.t_s for s in steps]  # truth/GNSS stay attached to their frame
+    assert all(s.truth is not None for s in steps)
