@@ -1,4 +1,9 @@
 """`terraslam sim ...` — synthetic datasets (issue 3)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
 import typer
 
 from companion.cli import app, fail
@@ -8,6 +13,54 @@ app.add_typer(sim_app, name="sim")
 
 
 @sim_app.command("generate")
-def generate() -> None:
-    """Write a simulated dataset (not available yet)."""
-    fail("`sim generate` is not available yet")
+def generate(
+    scenario: str = typer.Option("nominal", "--scenario", "-s", help="scenario name (see `terraslam sim list`)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output dataset directory (created)"),
+    seed: int = typer.Option(0, "--seed", help="world / flight / noise seed"),
+    frames: Optional[int] = typer.Option(None, "--frames", "-n", min=1, help="number of frames (default: whole flight)"),
+    gnss_timeline: Optional[str] = typer.Option(None, "--gnss", help="scripted GNSS events, e.g. 'dropout@60-90,spoof_drift@120'"),
+    jpg: bool = typer.Option(False, "--jpg", help="write JPEG (q95) instead of lossless PNG"),
+    force: bool = typer.Option(False, "--force", help="write into a non-empty directory"),
+) -> None:
+    """Render a named scenario and write it in the dataset layout (docs/DATASET.md)."""
+    from dataclasses import replace
+
+    from companion.dataset import write_dataset
+    from companion.sim import SCENARIOS, make_scenario
+    from companion.sim.gnss import parse_timeline
+
+    if scenario not in SCENARIOS:
+        fail(f"unknown scenario {scenario!r}; choose one of: {', '.join(SCENARIOS)}")
+    if out.exists() and any(out.iterdir()) and not force:
+        fail(f"{out} exists and is not empty (use --force to write into it)")
+    overrides = {}
+    if gnss_timeline:
+        try:
+            overrides["gnss"] = replace(SCENARIOS[scenario].gnss, events=parse_timeline(gnss_timeline))
+        except ValueError as e:
+            fail(f"--gnss: {e}")
+    try:
+        sc = make_scenario(scenario, seed=seed, n_frames=frames, **overrides)
+    except ValueError as e:
+        fail(str(e))
+    write_dataset(sc, out, progress=True, image_ext=".jpg" if jpg else ".png")
+    typer.echo(f"wrote {sc.n_frames} frames ({sc.duration_s:.1f} s) of scenario {scenario!r} to {out}")
+
+
+@sim_app.command("list")
+def list_scenarios() -> None:
+    """List the named scenarios."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from companion.sim import SCENARIOS
+    from companion.sim.flight import make_trajectory
+
+    t = Table("scenario", "flight", "speed m/s", "alt m", "camera pitch °", "lighting", "GNSS", "GIS model")
+    for name, s in SCENARIOS.items():
+        f = s.flight
+        ev = ",".join(f"{e.mode}@{e.start_s:g}" for e in s.gnss.events)
+        stale = "stale" if s.stale.changed_frac or s.stale.n_new or s.stale.registration_error_m else "fresh"
+        t.add_row(name, f"{f.kind} ({make_trajectory(f).duration_s:.0f} s)", f"{f.speed_mps:g}", f"{f.altitude_m:g}",
+                  f"{s.camera_pitch_deg:g}", s.lighting, s.gnss.base + (f" + {ev}" if ev else ""), stale)
+    Console().print(t)
