@@ -52,6 +52,7 @@ import numpy as np
 
 from companion.calibration import Calibration, load_calibration
 from companion.config import CameraConfig
+from companion.logs import log_event
 from slam.types import CameraModel, Frame
 
 log = logging.getLogger(__name__)
@@ -412,7 +413,8 @@ class CameraSource:
                 got_frames = self._stats.grabbed > grabbed_before
                 if stalled:
                     self._stats.last_error = f"camera source {self.name}: no frame for {self.stall_timeout_s:.1f} s (stall)"
-                log.warning("%s; reopening", self._stats.last_error or f"camera source {self.name} ended")
+                log_event(log, "camera_reopen", f"{self._stats.last_error or f'camera source {self.name} ended'}; reopening",
+                          level=logging.WARNING, source=self.name, stalls=self._stats.stalls, read_failures=self._stats.read_failures)
             failures = 0 if got_frames else failures + 1
             delay = min(self.backoff_max_s, self.backoff_s * 2 ** max(0, failures - 1))
             with self._cond:

@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from companion import notify
+from companion.logs import log_event
 
 log = logging.getLogger(__name__)
 
@@ -127,15 +128,18 @@ class Stage:
                     self._set(StageState.STOPPED, f"{type(e).__name__}: {e}")
                     return
                 with self._lock:
-                    self._restarts += 1
-                    n = self._restarts
+                    n = self._restarts + 1  # the restart this crash would need
                 if n > self.restart_limit:
                     self._set(StageState.FAILED, f"{type(e).__name__}: {e}")
-                    log.error("stage %s failed %d times; giving up (restart limit %d)", self.name, n, self.restart_limit)
+                    log_event(log, "stage_failed", f"stage {self.name} crashed after {n - 1} restarts; giving up",
+                              level=logging.ERROR, stage=self.name, restarts=n - 1, restart_limit=self.restart_limit)
                     return
+                with self._lock:
+                    self._restarts = n
                 self._set(StageState.BACKOFF, f"{type(e).__name__}: {e}")
                 delay = min(self.backoff_max_s, self.backoff_s * 2 ** (n - 1))
-                log.warning("restarting stage %s in %.2f s (restart %d of %d)", self.name, delay, n, self.restart_limit)
+                log_event(log, "stage_restart", f"restarting stage {self.name} in {delay:.2f} s", level=logging.WARNING,
+                          stage=self.name, restart=n, restart_limit=self.restart_limit, error=f"{type(e).__name__}: {e}")
                 if self.stop_event.wait(delay):
                     self._set(StageState.STOPPED)
                     return

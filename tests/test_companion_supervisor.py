@@ -159,7 +159,7 @@ def test_stage_exceeding_restart_limit_fails() -> None:
     stage.start()
     assert stage.join(5.0)
     h = stage.health()
-    assert h.state == StageState.FAILED and h.restarts == 3 and not h.healthy and len(seen) == 3
+    assert h.state == StageState.FAILED and h.restarts == 2 and not h.healthy and len(seen) == 3  # 1 run + 2 restarts
 
 
 def test_hung_stage_stops_watchdog_pings(listener: NotifyListener) -> None:
