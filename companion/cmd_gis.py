@@ -1,4 +1,9 @@
-"""`terraslam gis ...` and `terraslam align-offline` — GIS cache and offline alignment (issue 5)."""
+"""`terraslam gis import|ls|fetch` and `terraslam align-offline` — GIS cache and offline alignment (issue 5)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
 import typer
 
 from companion.cli import app, fail
@@ -6,14 +11,154 @@ from companion.cli import app, fail
 gis_app = typer.Typer(help="GIS model cache: import, list, fetch.", no_args_is_help=True)
 app.add_typer(gis_app, name="gis")
 
+_CONFIG = typer.Option(None, "--config", "-c", help="YAML config file (default: built-in defaults)")
+_CACHE = typer.Option(None, "--cache-dir", help="GIS cache directory (default: gis.cache_dir from the config)")
+
+
+def _gis_config(config: Optional[Path]):
+    from companion.config import ConfigError, load_config
+
+    try:
+        return load_config(config).gis
+    except ConfigError as e:
+        fail(str(e))
+
+
+def _cache(config: Optional[Path], cache_dir: Optional[Path]):
+    from gis.cache import GisCache
+
+    return GisCache(cache_dir or _gis_config(config).cache_dir)
+
+
+@gis_app.command("import")
+def gis_import(
+    path: Path = typer.Argument(..., help="model file (PLY/OBJ/GLB + .georef.json, LAS/LAZ, CityJSON, GeoJSON) or 3D Tiles directory"),
+    site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)"),
+    config: Optional[Path] = _CONFIG,
+    cache_dir: Optional[Path] = _CACHE,
+) -> None:
+    """Load a GIS model file and store it in the cache."""
+    from gis.loaders import load_model
+    from gis.model import GisFormatError
+
+    cfg = _gis_config(config)
+    try:
+        model = load_model(path, cfg.sample_spacing_m)
+    except GisFormatError as e:
+        fail(str(e))
+    site_id = _cache(config, cache_dir).save_model(model, site)
+    o = model.origin
+    typer.echo(f"imported {path} as site {site_id}: {len(model)} points, origin {o.lat0_deg:.6f}, {o.lon0_deg:.6f}, "
+               f"h {o.h0_ellipsoid_m:.1f} m (ellipsoid), CRS {model.source_crs}")
+
 
 @gis_app.command("ls")
-def gis_ls() -> None:
-    """List cached GIS models and transforms (not available yet)."""
-    fail("`gis ls` is not available yet")
+def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE) -> None:
+    """List cached GIS models and their transforms."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from gis.cache import CacheCorrupt
+
+    try:
+        entries = _cache(config, cache_dir).entries()
+    except CacheCorrupt as e:
+        fail(str(e))
+    t = Table("site", "origin lat, lon", "radius m", "points", "CRS", "T_rough", "T_fine", "sha256")
+    for e in entries:
+        t.add_row(e.site_id, f"{e.origin.lat0_deg:.6f}, {e.origin.lon0_deg:.6f}", f"{e.radius_m:.0f}", str(e.n_points),
+                  e.source_crs, "yes" if e.T_rough else "-", "yes" if e.T_fine else "-", e.sha256[:12])
+    Console().print(t)
+    if not entries:
+        typer.echo("(cache is empty)")
+
+
+@gis_app.command("fetch")
+def gis_fetch(
+    lat: float = typer.Option(..., "--lat", help="rough latitude, degrees WGS-84"),
+    lon: float = typer.Option(..., "--lon", help="rough longitude, degrees WGS-84"),
+    source: List[str] = typer.Option(..., "--source", help="model file, directory or http(s):// 3D Tiles tileset URL (repeatable)"),
+    radius_m: Optional[float] = typer.Option(None, "--radius-m", help="fetch radius (default gis.fetch_radius_m)"),
+    site: Optional[str] = typer.Option(None, "--site"),
+    config: Optional[Path] = _CONFIG,
+    cache_dir: Optional[Path] = _CACHE,
+) -> None:
+    """Obtain the models within a radius of a rough position (TerraSLAM §6) and cache them."""
+    from gis.model import GisFormatError
+    from gis.providers import FetchError, HttpTilesProvider, LocalProvider, fetch_model
+
+    cfg = _gis_config(config)
+    cache = _cache(config, cache_dir)
+    providers = [
+        HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m)
+        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m)
+        for s in source
+    ]
+    try:
+        model = fetch_model(providers, lat, lon, radius_m or cfg.fetch_radius_m, ",".join(source))
+    except (FetchError, GisFormatError) as e:
+        fail(str(e))
+    site_id = cache.save_model(model, site)
+    typer.echo(f"fetched {len(model)} points into site {site_id}")
 
 
 @app.command("align-offline")
-def align_offline() -> None:
-    """Compute T_rough for a site from a survey dataset (not available yet)."""
-    fail("`align-offline` is not available yet")
+def align_offline(
+    dataset: Path = typer.Argument(..., help="dataset directory (docs/DATASET.md) of the survey flight"),
+    cloud: Optional[Path] = typer.Option(None, "--cloud", help="dense survey cloud in the SLAM frame (PLY); default DATASET/survey_cloud.ply"),
+    radius_m: float = typer.Option(250.0, "--radius-m", help="GIS search radius around the rough position"),
+    site: Optional[str] = typer.Option(None, "--site", help="site id (default: the dataset name)"),
+    config: Optional[Path] = _CONFIG,
+    cache_dir: Optional[Path] = _CACHE,
+) -> None:
+    """Compute T_rough for a site from a survey (TerraSLAM §4.3) and store it in the GIS cache.
+
+    The dense SLAM-frame survey cloud must be given (--cloud or DATASET/survey_cloud.ply);
+    building it from the survey frames is not done by this command yet.
+    """
+    import numpy as np
+    import open3d as o3d
+    from rich.console import Console
+
+    from companion.dataset import DatasetError, read_dataset
+    from gis.align.rough import RoughAlignmentFailed, rough_align
+    from gis.loaders import load_model
+    from gis.model import GisFormatError
+
+    console = Console(stderr=True)
+    cfg = _gis_config(config)
+    try:
+        ds = read_dataset(dataset)
+    except DatasetError as e:
+        fail(str(e))
+    cloud = cloud or dataset / "survey_cloud.ply"
+    if not cloud.is_file():
+        fail(f"{cloud}: no dense survey cloud (SLAM frame, PLY); pass --cloud")
+    p_slam = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
+    if len(p_slam) == 0:
+        fail(f"{cloud}: no points could be read")
+    model, errors = None, []
+    for f in ds.gis_files:
+        try:
+            console.print(f"loading GIS model {f}")
+            model = load_model(f, cfg.sample_spacing_m)
+            break
+        except GisFormatError as e:
+            errors.append(str(e))
+    if model is None:
+        fail("no loadable GIS model in the dataset: " + "; ".join(errors or ["site.yaml lists none"]))
+    rp = ds.rough_position
+    center = model.origin.geodetic_to_enu(rp.lat_deg, rp.lon_deg, rp.h_ellipsoid_m)
+    with console.status("offline alignment") as status:
+        try:
+            res = rough_align(p_slam, model, center, radius_m + rp.sigma_m, progress=lambda s: (status.update(s), console.print(s)))
+        except RoughAlignmentFailed as e:
+            fail(f"{dataset}: {e}")
+    cache = _cache(config, cache_dir)
+    site_id = cache.save_model(model, site or ds.name)
+    cache.save_transform(site_id, "rough", res.T_ecef_slam, {
+        "dataset": str(dataset), "cloud": str(cloud), "error_m": res.error_m, "corner_inliers": res.n_inliers,
+        "corner_rmse_m": res.corner_rmse_m,
+    })
+    typer.echo(f"T_rough stored for site {site_id}: mean point-to-model error {res.error_m:.3f} m, "
+               f"scale {res.T_ecef_slam.scale:.5g}, {res.n_inliers} corner inliers")
