@@ -86,8 +86,9 @@ class SlamPose:
     """Tracking output for one frame.
 
     T_slam_cam: 4x4 camera-to-SLAM transform (camera centre = T_slam_cam[:3, 3]); only meaningful
-    when ``state.has_pose``. reset_counter increments whenever the SLAM frame is re-created (new
-    map after a reset) or jumps (loop closure correction) so downstream alignments can be dropped.
+    when ``state.has_pose``. reset_counter increments only when the SLAM frame is re-created (a
+    new map after a reset), so downstream alignments for the old map are dropped; a loop-closure
+    correction keeps the frame (the old part of the map stays anchored) and does not increment it.
     n_inliers: map points used for the pose; tracking_ms: wall time spent in the tracking thread.
     """
 
