@@ -41,7 +41,7 @@ class Lighting:
         presets = {
             "normal": Lighting(),
             "bright": Lighting("bright", gain=2.3, gamma=0.8, read_noise_dn=2.0, sun_elevation_deg=65.0),
-            "dark": Lighting("dark", gain=0.22, gamma=1.0, read_noise_dn=3.0, shot_noise=0.5, sun_elevation_deg=12.0),
+            "dark": Lighting("dark", gain=0.3, gamma=0.8, read_noise_dn=3.0, shot_noise=0.5, sun_elevation_deg=15.0),
         }
         if name not in presets:
             raise ValueError(f"unknown lighting {name!r}; choose one of {sorted(presets)}")
