@@ -75,6 +75,7 @@ class Bridge:
         self._last_fix: GlobalFix | None = None
         self._last_hb_rx_s: float | None = None
         self._link_up_since_s: float | None = None
+        self._last_rx_s = -math.inf               # any message from the autopilot
         self._next_hb_s = 0.0
         self._next_origin_s = 0.0
         self._last_boot_ms: int | None = None
@@ -191,6 +192,7 @@ class Bridge:
         if not self._from_autopilot(msg):
             return
         self._stats.received[t] += 1
+        self._last_rx_s = now
         if t == "HEARTBEAT":
             if self._last_hb_rx_s is None or now - self._last_hb_rx_s > self.cfg.link_timeout_s:
                 self._link_up_since_s = now
@@ -268,8 +270,10 @@ class Bridge:
         if self._stats.link_up and not link_up:
             log.warning("link down: no autopilot HEARTBEAT for %.1f s", now - self._last_hb_rx_s)
         self._stats.link_up = link_up
-        # After (re)connecting, give the requested GNSS stream stale_after_s to arrive before judging it.
-        judged = link_up and now - self._link_up_since_s >= self.sw_cfg.stale_after_s
+        # After (re)connecting, give the requested GNSS stream stale_after_s to arrive before judging it;
+        # when the autopilot has gone quiet altogether, GNSS silence says nothing about its receiver.
+        stale = self.sw_cfg.stale_after_s
+        judged = link_up and now - self._link_up_since_s >= stale and now - self._last_rx_s <= stale / 2
         with self._lock:
             status = self.monitor.status(now)
             event = self.policy.update(status, judged)

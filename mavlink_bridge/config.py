@@ -47,7 +47,7 @@ class SwitchingConfig(BaseModel):
     min_satellites: int = Field(6, ge=0, le=64)
     max_eph: float = Field(2.5, gt=0, description="HDOP above which GNSS is degraded")
     max_h_acc_m: float = Field(5.0, gt=0)
-    stale_after_s: float = Field(1.0, gt=0, description="GNSS silence that counts as lost")
+    stale_after_s: float = Field(0.8, gt=0, description="GNSS silence that counts as lost (0.8 s = 4 missed 5 Hz reports: loss detected within 1 s)")
     handback_good_s: float = Field(10.0, ge=0, description="good, agreeing GNSS needed before handing back")
     min_dwell_s: float = Field(3.0, ge=0, description="minimum time in a state (no flapping)")
     spoof_sigma: float = Field(3.0, gt=0, description="GNSS/vision disagreement (in combined σ) that marks GNSS untrusted")

@@ -426,6 +426,19 @@ class SimAutopilot:
         self._accept("PARAM_SET")
         self._send(self._conn.mav.param_value_encode(name.encode(), msg.param_value, msg.param_type, len(self.params), 0))
 
+    def _on_param_request_read(self, msg, now):
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
+        name = name.rstrip("\x00")
+        if name not in self.params:
+            return self._reject(now, "PARAM_REQUEST_READ", f"unknown parameter {name}")
+        value = self.params[name]
+        if isinstance(value, float):
+            ptype, wire = mavlink.MAV_PARAM_TYPE_REAL32, value
+        else:
+            ptype = mavlink.MAV_PARAM_TYPE_INT32
+            wire = struct.unpack("<f", struct.pack("<i", int(value)))[0] if self.personality == "px4" else float(value)
+        self._send(self._conn.mav.param_value_encode(name.encode(), wire, ptype, len(self.params), list(self.params).index(name)))
+
     def _on_command_long(self, msg, now):
         result = mavlink.MAV_RESULT_ACCEPTED
         if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -480,7 +493,8 @@ class SimAutopilot:
                 out.append(mav.gps2_raw_encode(int(now * 1e6), fix, round(m["lat"] * 1e7), round(m["lon"] * 1e7), round(m["alt"] * 1000),
                                                min(65534, round(m["hdop"] * 100)), 65535, 65535, 65535, m["sats"], 0, 0))
             if self._due(mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, now):
-                out.append(mav.ekf_status_report_encode(32768 if self._glitch else 0, 0.1, 0.1, 0.1, 0.1, 0.0))
+                flags = (mavlink.EKF_POS_HORIZ_ABS if est.valid and est.source != "dead_reckoning" else 0) | (32768 if self._glitch else 0)
+                out.append(mav.ekf_status_report_encode(flags, 0.1, 0.1, 0.1, 0.1, 0.0))
             if self._due(mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS, now):
                 flags = (mavlink.ESTIMATOR_POS_HORIZ_ABS if est.valid and est.source != "dead_reckoning" else 0) | \
                         (mavlink.ESTIMATOR_GPS_GLITCH if self._glitch else 0)

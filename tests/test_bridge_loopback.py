@@ -1,0 +1,245 @@
+"""The bridge against the simulated autopilot over real UDP on 127.0.0.1, both personalities.
+
+Each test flies the straight-line scenario in real time (20 Hz fixes, 5 Hz GNSS) for a few
+seconds with short hysteresis settings; the fix-loss and spoofing detection bounds are the real
+defaults' (stale_after_s 0.8, spoof_persist_s 2).
+"""
+import math
+import socket
+import time
+
+import pytest
+
+from gis.geodesy import LocalFrame
+from mavlink_bridge import emitters
+from mavlink_bridge.bridge import Bridge
+from mavlink_bridge.link import open_connection
+from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
+from mavlink_bridge.policy import BridgeState
+from mavlink_bridge.scenario import Flight
+from mavlink_bridge.sim_autopilot import SimAutopilot
+
+DT_S = 0.05
+GNSS_EVERY = 4  # 5 Hz receiver
+# output per personality, with the autopilot parameters docs/AUTOPILOTS.md asks for
+SETUPS = {
+    "ardupilot": ("gps_input", {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}),
+    "px4": ("odometry", {}),
+}
+
+
+class Rig:
+    def __init__(self, personality, output=None, params=None, sw=None, sim_key=None, **mav):
+        out, default_params = SETUPS[personality]
+        self.sim = SimAutopilot(personality, ekf_start_s=0.2, params=params or default_params, signing_key=sim_key).start()
+        self.cfg = MavlinkConfig(connect=f"udpout:127.0.0.1:{self.sim.port}", autopilot=personality,
+                                 output=output or out, rate_hz=20.0, **mav)
+        self.bridge = Bridge(self.cfg, sw or SwitchingConfig(handback_good_s=2.0, min_dwell_s=1.0)).start()
+        self.flight = Flight()
+        self.t0 = time.monotonic()
+        self.k = 0
+
+    def fly(self, seconds, gnss="good", fix=True, until=None):
+        """Advance the flight; ``gnss``: good | lost | silent | (dn, de) spoof offset in metres."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            now = time.monotonic()
+            t = now - self.t0
+            if self.k % GNSS_EVERY == 0 and gnss != "silent":
+                if gnss == "good":
+                    self.sim.feed_gnss(self.flight.gnss(now, t))
+                elif gnss == "lost":
+                    self.sim.feed_gnss(self.flight.gnss_lost(now))
+                else:
+                    self.sim.feed_gnss(self.flight.gnss(now, t, offset_ned_m=(gnss[0], gnss[1], 0.0)))
+            self.bridge.submit_fix(self.flight.fix(now, t, self.k) if fix else None)
+            self.k += 1
+            if until is not None and until():
+                return True
+            time.sleep(max(0.0, DT_S - (time.monotonic() - now)))
+        return until is None
+
+    def est_error_m(self):
+        e = self.sim.estimate()
+        if not e.valid:
+            return math.inf
+        t = time.monotonic() - self.t0
+        truth = self.flight.frame.ned_to_geodetic(self.flight.p_ned_m(t))
+        d = LocalFrame(float(truth[0]), float(truth[1])).geodetic_to_ned(e.lat_deg, e.lon_deg, 0.0)
+        return math.hypot(d[0], d[1])
+
+    def close(self):
+        self.bridge.close()
+        self.sim.close()
+
+
+@pytest.fixture
+def rigs():
+    made = []
+
+    def make(*a, **kw):
+        made.append(Rig(*a, **kw))
+        return made[-1]
+    yield make
+    for r in made:
+        r.close()
+
+
+OUR_SOURCE = {"ardupilot": "mavlink_gps", "px4": "external_vision"}
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_nominal_gnss_no_takeover(rigs, personality):
+    rig = rigs(personality)
+    rig.fly(3.0)
+    assert rig.bridge.state is BridgeState.STANDBY and rig.bridge.events() == []
+    assert rig.bridge.gnss_status().trusted
+    assert rig.sim.estimate().source == "gnss"
+    rx = rig.sim.received()
+    assert rx.accepted[{"ardupilot": "GPS_INPUT", "px4": "ODOMETRY"}[personality]] > 20  # fed as secondary
+    assert rig.bridge.stats().link_up
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+@pytest.mark.parametrize("how", ["lost", "silent"])
+def test_gnss_loss_takeover_follow_and_handback_after_hysteresis(rigs, personality, how):
+    rig = rigs(personality)
+    rig.fly(2.0)
+    t_loss = time.monotonic()
+    assert rig.fly(3.0, gnss=how, until=lambda: rig.bridge.state is BridgeState.ACTIVE)
+    ev = rig.bridge.events()[0]
+    assert ev.to_state is BridgeState.ACTIVE and ev.t_s - t_loss <= 1.0, ev
+    rig.fly(1.5, gnss=how)
+    assert rig.sim.estimate().source == OUR_SOURCE[personality]
+    assert rig.est_error_m() < 1.5  # the autopilot follows our fixes (0.25 m lag per 50 ms at 5 m/s)
+    assert any(text.startswith("TerraSLAM ACTIVE") for _, text in rig.sim.received().statustext)
+    t_back = time.monotonic()
+    assert rig.fly(5.0, until=lambda: rig.bridge.state is BridgeState.STANDBY)
+    back = rig.bridge.events()[-1]
+    assert back.to_state is BridgeState.STANDBY and back.t_s - t_back >= 2.0  # handback_good_s
+    rig.fly(0.5)
+    assert rig.sim.estimate().source == "gnss"
+    assert len(rig.bridge.events()) == 2
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_spoofing_detected_and_taken_over(rigs, personality):
+    rig = rigs(personality, sw=SwitchingConfig(handback_good_s=2.0, min_dwell_s=1.0))
+    rig.fly(2.0)
+    t_spoof = time.monotonic()
+    assert rig.fly(6.0, gnss=(0.0, 10.0), until=lambda: rig.bridge.state is BridgeState.ACTIVE)
+    ev = rig.bridge.events()[0]
+    assert "spoofing" in ev.reason and ev.t_s - t_spoof <= 5.0
+    rig.fly(1.0, gnss=(0.0, 10.0))
+    # the receiver still reports a perfect fix; the bridge moved the autopilot onto our source
+    assert rig.sim.estimate().source == OUR_SOURCE[personality]
+    assert rig.est_error_m() < 1.5
+    assert rig.bridge.state is BridgeState.ACTIVE
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_tracking_lost_stops_output(rigs, personality):
+    rig = rigs(personality)
+    rig.fly(1.5)
+    rig.fly(1.0, gnss="lost")
+    assert rig.bridge.state is BridgeState.ACTIVE
+    rig.fly(0.3, gnss="lost", fix=False)
+    before = rig.sim.received().counts
+    rig.fly(1.0, gnss="lost", fix=False)
+    after = rig.sim.received().counts
+    for t in ("GPS_INPUT", "ODOMETRY"):
+        assert after[t] == before[t]  # nothing more, not even a stale fix
+    assert rig.sim.estimate().source in ("dead_reckoning", "none")
+    if personality == "ardupilot":  # told at once rather than timing out after 4 s
+        assert rig.bridge.stats().sent["GPS_INPUT"] == rig.sim.received().counts["GPS_INPUT"]
+
+
+def test_link_dropped_and_restored_resumes(rigs):
+    rig = rigs("ardupilot", sw=SwitchingConfig(handback_good_s=2.0, min_dwell_s=1.0))
+    rig.fly(1.5)
+    port = rig.sim.port
+    rig.sim.close()
+    rig.fly(3.5, gnss="silent")
+    assert not rig.bridge.stats().link_up
+    assert rig.bridge.state is BridgeState.STANDBY  # link down: no verdict on GNSS we cannot see
+    rig.sim = SimAutopilot("ardupilot", port, ekf_start_s=0.2, params=SETUPS["ardupilot"][1]).start()
+    assert rig.fly(4.0, until=lambda: rig.bridge.stats().link_up and rig.sim.received().accepted["GPS_INPUT"] > 10)
+    # streams were re-requested on the new link: the ArduPilot personality streams nothing unasked
+    assert rig.sim.received().accepted["COMMAND_LONG:511"] >= 4
+    rig.fly(1.0)
+    assert rig.bridge.gnss_status().trusted
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_random_and_truncated_bytes_do_not_crash(rigs, personality):
+    import random
+    rig = rigs(personality)
+    rig.fly(1.0)
+    bridge_port = rig.bridge._link.conn.port.getsockname()[1]
+    rng = random.Random(6)
+    frame = bytes(rig.sim._conn.mav.heartbeat_encode(2, 3, 0, 0, 4).pack(rig.sim._conn.mav))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for i in range(400):
+            junk = bytes(rng.getrandbits(8) for _ in range(rng.randint(1, 300)))
+            if i % 4 == 0:  # MAVLink 2 start byte and a plausible header, then garbage / truncation
+                junk = frame[: rng.randint(1, len(frame) - 1)] + (junk if i % 8 else b"")
+            s.sendto(junk, ("127.0.0.1", bridge_port))
+            s.sendto(junk, ("127.0.0.1", rig.sim.port))
+    rig.fly(1.5)
+    st = rig.bridge.stats()
+    assert rig.bridge._thread.is_alive() and st.rejected_frames > 0
+    assert rig.bridge.gnss_status().trusted and st.link_up
+    before = rig.sim.received().counts["GPS_INPUT"] + rig.sim.received().counts["ODOMETRY"]
+    rig.fly(0.5)
+    assert rig.sim.received().counts["GPS_INPUT"] + rig.sim.received().counts["ODOMETRY"] > before + 5
+
+
+def test_signing_rejects_unsigned_peers(rigs, tmp_path):
+    key = bytes(range(32))
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_bytes(key)
+    key_file.chmod(0o600)
+    signed = rigs("ardupilot", sim_key=key, signing_key_file=key_file)
+    signed.fly(1.5)
+    assert signed.bridge.stats().link_up and signed.sim.received().accepted["GPS_INPUT"] > 10
+    unsigned_peer = rigs("ardupilot", signing_key_file=key_file)  # the autopilot does not sign: everything it says is rejected
+    unsigned_peer.fly(1.5)
+    st = unsigned_peer.bridge.stats()
+    assert not st.link_up and sum(st.received.values()) == 0 and st.rejected_frames > 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # an unsigned sender to a signing autopilot
+        mav = signed.bridge._link.mav.__class__(None, srcSystem=1, srcComponent=197)
+        s.sendto(bytes(mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav)), ("127.0.0.1", signed.sim.port))
+    signed.fly(0.3)
+    assert any("signature" in r.lower() for r in signed.sim.received().reasons("BAD_DATA"))
+
+
+def test_ardupilot_rejects_wrong_gps_id_and_px4_ignores_gps_input(rigs):
+    wrong = rigs("ardupilot", gps_id=0)  # GPS1_TYPE is the real receiver, not 14
+    wrong.fly(1.0)
+    assert "gps_id 0" in wrong.sim.received().reasons("GPS_INPUT")[0]
+    wrong.fly(1.0, gnss="lost")
+    assert wrong.sim.estimate().source != "mavlink_gps"
+    px4 = SimAutopilot("px4").start()
+    try:
+        conn = open_connection(f"udpout:127.0.0.1:{px4.port}", 0, 1, 197)
+        fix = Flight().fix(time.monotonic(), 0.0)
+        for _ in range(5):
+            conn.mav.send(emitters.gps_input(conn.mav, fix, MavlinkConfig(gps_id=0)))
+        time.sleep(0.3)
+        assert px4.received().reasons("GPS_INPUT") == ["ignored: PX4 has no GPS_INPUT handler"] * 5
+        assert px4.received().accepted["GPS_INPUT"] == 0
+        conn.close()
+    finally:
+        px4.close()
+
+
+def test_ardupilot_external_nav_origin_and_source_set(rigs):
+    # no GNSS at boot: the bridge must set the EKF origin (re-sent until acknowledged), then ExtNav
+    rig = rigs("ardupilot", output="odometry", params={"GPS_AUTO_SWITCH": 1})
+    rig.sim.ekf_start_s = 1.0
+    assert rig.fly(5.0, gnss="lost", until=lambda: rig.sim.estimate().source == "external_nav")
+    rx = rig.sim.received()
+    assert rx.accepted["SET_GPS_GLOBAL_ORIGIN"] == 1 and rig.sim.source_set == 2
+    assert rig.bridge.stats().origin is not None
+    rig.fly(1.0, gnss="lost")
+    assert rig.est_error_m() < 1.5
