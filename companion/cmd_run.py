@@ -1,20 +1,124 @@
 """`terraslam run|demo|replay` — the service, the built-in demo, offline replay (issue 7)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
 from companion.cli import app, fail
 
 
+def _load(config: Optional[Path]):
+    from companion.config import ConfigError, load_config
+
+    try:
+        return load_config(config)
+    except ConfigError as e:
+        fail(str(e))
+
+
+def _progress_bar(description: str):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[state]}"),
+                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+
+
+def _print_summary(summary: dict, out: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    t = Table(title=summary["name"], show_header=True)
+    t.add_column("figure")
+    t.add_column("value", justify="right")
+
+    def fmt(x, unit=""):
+        return "n/a" if x is None else f"{x:.3f}{unit}" if isinstance(x, float) else f"{x}{unit}"
+
+    t.add_row("frames", fmt(summary["frames"]))
+    t.add_row("tracking ratio", fmt(summary["tracking_ratio"]))
+    t.add_row("GNSS lost → we took over at", fmt(summary["takeover_t_s"], " s"))
+    t.add_row("fix ratio after takeover", fmt(summary["fix_ratio_after_takeover"]))
+    for label, key in (("all fixes", "all_fixes"), ("after takeover", "after_takeover")):
+        ge = summary[key]["global_error_m"]
+        t.add_row(f"3D error, {label} (mean / P99)", f"{fmt(ge['mean'])} / {fmt(ge['p99'])} m  (n={summary[key]['n']})")
+        t.add_row(f"integrity violations, {label}", fmt(summary[key]["integrity_violation_ratio"]))
+    ap = summary.get("autopilot_horizontal_error_m_after_takeover")
+    if ap and ap["mean"] is not None:
+        t.add_row("autopilot EKF horizontal error after takeover (mean / P99)", f"{fmt(ap['mean'])} / {fmt(ap['p99'])} m")
+    lat = summary["frame_latency_ms"]
+    t.add_row("per-frame pipeline latency (mean / P99)", f"{fmt(lat['mean'])} / {fmt(lat['p99'])} ms")
+    ft = summary["finetune_ms"]
+    t.add_row("GIS fine-tune (mean / P99)", f"{fmt(ft['mean'])} / {fmt(ft['p99'])} ms")
+    console.print(t)
+    if summary.get("switch_events"):
+        console.print("[bold]Switch timeline[/bold]")
+        for ts, text in summary["switch_events"]:
+            console.print(f"  t={ts:7.2f} s  {text}")
+    if summary.get("alignment_events"):
+        console.print("[bold]Alignment timeline[/bold] (first 12)")
+        for ts, text in summary["alignment_events"][:12]:
+            console.print(f"  t={ts:7.2f} s  {text}")
+    console.print(f"Outputs in {out}/ (report.md, report.json, trajectory.csv/.tum/.geojson, PNG plots)")
+
+
 @app.command("demo")
-def demo() -> None:
-    """Built-in simulated flight with GNSS loss (not available yet)."""
-    fail("`demo` is not available yet")
+def demo(
+    out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="output folder for report, trajectory and plots"),
+    frames: int = typer.Option(900, "--frames", min=60, help="camera frames to simulate (15 fps)"),
+    autopilot: str = typer.Option("ardupilot", "--autopilot", help="simulated autopilot personality: ardupilot | px4"),
+    seed: int = typer.Option(0, "--seed"),
+    loss_at: float = typer.Option(25.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""
+    from companion.app import DemoOptions, run_demo
 
+    if autopilot not in ("ardupilot", "px4"):
+        fail(f"--autopilot must be ardupilot or px4, got {autopilot!r}")
+    cfg = _load(config)
+    opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot)
+    with _progress_bar("demo") as bar:
+        task = bar.add_task("simulated flight", total=frames, state="")
 
-@app.command("run")
-def run() -> None:
-    """Run the companion service (not available yet)."""
-    fail("`run` is not available yet")
+        def progress(k, n, state):
+            bar.update(task, completed=k, state=state)
+
+        summary = run_demo(cfg, out, opts, progress=progress)
+    _print_summary(summary, out)
 
 
 @app.command("replay")
-def replay() -> None:
-    """Replay a dataset offline (not available yet)."""
-    fail("`replay` is not available yet")
+def replay(
+    dataset: Path = typer.Argument(..., help="dataset folder (docs/DATASET.md)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    frames: Optional[int] = typer.Option(None, "--frames", min=1, help="replay only the first N frames"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth exists)."""
+    from companion.app import run_replay
+    from companion.dataset import DatasetError
+
+    cfg = _load(config)
+    try:
+        with _progress_bar("replay") as bar:
+            task = bar.add_task(str(dataset), total=frames or 0, state="")
+
+            def progress(k, n, state):
+                bar.update(task, completed=k, total=n)
+
+            summary = run_replay(cfg, dataset, out, frames, progress=progress)
+    except (DatasetError, ValueError, FileNotFoundError) as e:
+        fail(str(e))
+    _print_summary(summary, out)
+
+
+@app.command("run")
+def run(config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config (default: config/default.yaml)")) -> None:
+    """Run the companion service (camera → SLAM → GIS alignment → MAVLink), supervised, systemd-aware."""
+    from companion.service import run_service
+
+    cfg = _load(config)
+    raise typer.Exit(run_service(cfg))

@@ -1,0 +1,303 @@
+"""Wiring: the demo, offline replay and the service, each reading top to bottom (run → evaluate → write).
+
+- ``run_demo``: built-in simulated city + flight, a simulated autopilot on UDP loopback fed by the
+  GNSS simulator, GNSS lost mid-flight. Everything shares one simulated clock so the demo runs as
+  fast as the machine allows while every rate, timeout and hysteresis is judged in flight time.
+- ``run_replay``: any dataset in the documented layout (docs/DATASET.md), offline, no autopilot.
+- ``run_service``: the real thing (camera → SLAM → GIS alignment → MAVLink), supervised.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from companion.config import AppConfig
+from companion.evaluate import fix_errors, stats, write_csv, write_geojson, write_report, write_tum
+from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput
+from gis.align.fine import FineTuner
+from gis.globalizer import Globalizer
+from gis.loaders import load_model
+from gis.model import GisModel
+from gis.types import Alignment
+from mavlink_bridge.config import SwitchingConfig
+from mavlink_bridge.monitor import GnssMonitor
+from mavlink_bridge.types import GnssQuality
+from slam.types import CameraModel
+
+log = logging.getLogger(__name__)
+
+
+class SimClock:
+    """Monotonic simulated time in seconds, advanced by the frame loop (thread-safe reads)."""
+
+    def __init__(self, t0_s: float = 0.0):
+        self._t = t0_s
+        self._lock = threading.Lock()
+
+    def __call__(self) -> float:
+        with self._lock:
+            return self._t
+
+    def advance_to(self, t_s: float) -> None:
+        with self._lock:
+            self._t = max(self._t, t_s)
+
+
+def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
+                    initial_alignment: Alignment | None = None) -> Localizer:
+    """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy)."""
+    from slam.system import SlamSystem
+
+    slam = SlamSystem(camera, cfg.slam)
+    tuner = FineTuner(model, cfg.alignment) if model is not None else None
+    return Localizer(slam, tuner, Globalizer(T_body_cam), cfg.alignment.finetune_every_frames,
+                     initial_alignment=initial_alignment,
+                     bootstrap=BootstrapCollector() if cfg.alignment.bootstrap_from_gnss else BootstrapCollector(min_pairs=10**9))
+
+
+@dataclass
+class RunLog:
+    """Everything a run produced, for evaluation and plots (records in frame order)."""
+
+    records: list[FrameRecord] = field(default_factory=list)
+    truth_ecef_m: dict[int, np.ndarray] = field(default_factory=dict)     # seq → camera ECEF truth
+    gnss_ecef_m: list[tuple[float, np.ndarray, bool]] = field(default_factory=list)  # (t, ECEF, had fix)
+    wall_track_ms: list[float] = field(default_factory=list)
+    camera_to_wire_ms: list[float] = field(default_factory=list)
+    switch_events: list[tuple[float, str]] = field(default_factory=list)
+    alignment_events: list[tuple[float, str]] = field(default_factory=list)
+    autopilot_err_m: list[tuple[float, float, str]] = field(default_factory=list)  # (t, horiz. error, source)
+    finetune_ms: list[float] = field(default_factory=list)
+    takeover_t_s: float | None = None
+
+
+def summarize(run: RunLog, *, name: str) -> dict:
+    """Accuracy, availability and latency figures of a run (JSON-ready)."""
+    fixes = [r.fix for r in run.records if r.fix is not None and r.seq in run.truth_ecef_m]
+    errs = fix_errors(fixes, np.array([run.truth_ecef_m[f.seq] for f in fixes]).reshape(-1, 3))
+    after = [f for f in fixes if run.takeover_t_s is not None and f.t_s >= run.takeover_t_s]
+    errs_after = fix_errors(after, np.array([run.truth_ecef_m[f.seq] for f in after]).reshape(-1, 3))
+    n = len(run.records)
+    frames_after = [r for r in run.records if run.takeover_t_s is not None and r.t_s >= run.takeover_t_s]
+    return {
+        "name": name,
+        "frames": n,
+        "tracking_ratio": float(np.mean([r.pose.state.has_pose for r in run.records])) if n else None,
+        "fix_ratio_all": float(np.mean([r.fix is not None for r in run.records])) if n else None,
+        "fix_ratio_after_takeover": float(np.mean([r.fix is not None for r in frames_after])) if frames_after else None,
+        "takeover_t_s": run.takeover_t_s,
+        "all_fixes": errs.summary(),
+        "after_takeover": errs_after.summary(),
+        "frame_latency_ms": stats(np.array(run.wall_track_ms)),
+        "camera_to_wire_ms": stats(np.array(run.camera_to_wire_ms)),
+        "finetune_ms": stats(np.array(run.finetune_ms)),
+        "autopilot_horizontal_error_m_after_takeover": stats(np.array([e for t, e, _ in run.autopilot_err_m
+                                                                        if run.takeover_t_s is not None and t >= run.takeover_t_s + 1.0])),
+        "switch_events": run.switch_events,
+        "alignment_events": run.alignment_events,
+    }
+
+
+def write_outputs(run: RunLog, summary: dict, out_dir: Path, origin, title: str) -> list[Path]:
+    """Trajectory files, report and PNG plots into out_dir."""
+    from companion import viz
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fixes = [r.fix for r in run.records if r.fix is not None]
+    write_csv(fixes, out_dir / "trajectory.csv")
+    write_tum(fixes, origin, out_dir / "trajectory.tum")
+    write_geojson(fixes, out_dir / "trajectory.geojson", {"run": title})
+    write_report(summary, out_dir / "report.json", out_dir / "report.md", title=title)
+    written = [out_dir / n for n in ("trajectory.csv", "trajectory.tum", "trajectory.geojson", "report.json", "report.md")]
+    if fixes and run.truth_ecef_m:
+        ours = origin.ecef_to_enu(np.stack([f.p_ecef_m for f in fixes]))
+        seqs = sorted(run.truth_ecef_m)
+        truth = origin.ecef_to_enu(np.stack([run.truth_ecef_m[s] for s in seqs]))
+        tracks = {"truth": truth[:, :2], "ours": ours[:, :2]}
+        if run.gnss_ecef_m:
+            g = np.stack([p for _, p, ok in run.gnss_ecef_m if ok]) if any(ok for *_, ok in run.gnss_ecef_m) else None
+            if g is not None:
+                tracks["GNSS"] = origin.ecef_to_enu(g)[:, :2]
+        viz.plot_track(out_dir / "track.png", tracks)
+        with_truth = [f for f in fixes if f.seq in run.truth_ecef_m]
+        e = fix_errors(with_truth, np.stack([run.truth_ecef_m[f.seq] for f in with_truth]))
+        events = run.switch_events + [(t, s) for t, s in run.alignment_events if "accepted (initial" not in s][:12]
+        viz.plot_error_over_time(out_dir / "error_over_time.png", {"ours (3D)": (e.t_s, e.err_3d_m), "ours 3σ h_acc": (e.t_s, 3 * e.h_acc_m)}, events=events)
+        viz.plot_error_cdf(out_dir / "error_cdf.png", {"ours (3D)": e.err_3d_m, "ours (horizontal)": e.err_h_m})
+        written += [out_dir / "track.png", out_dir / "error_over_time.png", out_dir / "error_cdf.png"]
+    if run.wall_track_ms:
+        viz.plot_latency_hist(out_dir / "latency.png", {"tracking (ms)": np.array(run.wall_track_ms)})
+        written.append(out_dir / "latency.png")
+    return written
+
+
+# --------------------------------------------------------------------------------------------
+# demo
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    seed: int = 0
+    n_frames: int = 900
+    fps: float = 15.0
+    gnss_loss_at_s: float = 25.0
+    autopilot: str = "ardupilot"
+    scenario: str = "gnss_loss"
+
+
+def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
+             progress: Callable[[int, int, str], None] | None = None) -> dict:
+    """The embedded default: simulated flight, GNSS lost mid-flight, our fixes take over."""
+    from companion.sim import make_scenario
+    from companion.sim.gis_export import export_gis
+    from companion.sim.gnss import GnssEvent, GnssSpec
+    from mavlink_bridge.bridge import Bridge
+    from mavlink_bridge.sim_autopilot import SimAutopilot
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scenario = make_scenario(opts.scenario, opts.seed, opts.n_frames, fps=opts.fps,
+                             gnss=GnssSpec(events=(GnssEvent("dropout", opts.gnss_loss_at_s),)))
+    gis_world, _ = scenario.gis
+    files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
+    model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
+
+    clock = SimClock()
+    output = cfg.mavlink.output if opts.autopilot == cfg.mavlink.autopilot else ("gps_input" if opts.autopilot == "ardupilot" else "odometry")
+    params = {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if opts.autopilot == "ardupilot" else {}
+    autopilot = SimAutopilot(opts.autopilot, params=params, clock=clock).start()
+    mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{autopilot.port}", "autopilot": opts.autopilot, "output": output})
+    bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
+    localizer = build_localizer(cfg, scenario.camera, scenario.T_body_cam, model)
+    run = RunLog()
+    try:
+        for k, step in enumerate(scenario.steps()):
+            clock.advance_to(step.frame.t_s)
+            for s in step.gnss:
+                autopilot.feed_gnss(s)
+                run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+            for a in step.attitude:
+                autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
+            truth = step.truth
+            autopilot.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
+            status = bridge.gnss_status()
+            t_capture = time.perf_counter()
+            item = PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD)
+            rec = localizer.process(item)
+            t_tracked = time.perf_counter()
+            bridge.submit_fix(rec.fix)
+            t_wire = time.perf_counter()
+            run.records.append(rec)
+            run.truth_ecef_m[rec.seq] = truth.p_ecef_m
+            run.wall_track_ms.append((t_tracked - t_capture) * 1e3)
+            if rec.fix is not None:
+                run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
+            est = autopilot.estimate()
+            if est.valid:
+                run.autopilot_err_m.append((step.frame.t_s, _horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
+            if progress is not None:
+                progress(k + 1, scenario.n_frames, bridge.state.value)
+        time.sleep(0.2)  # let the last UDP messages land before reading the autopilot's counters
+        run.switch_events = [(e.t_s, f"{e.from_state.value} → {e.to_state.value}: {e.reason}") for e in bridge.events()]
+        active = [e for e in bridge.events() if e.to_state.value == "active"]
+        run.takeover_t_s = active[0].t_s if active else None
+        run.alignment_events = list(localizer.events)
+        run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
+        received = autopilot.received()
+        bridge_stats = bridge.stats()
+    finally:
+        localizer.close()
+        bridge.close()
+        autopilot.close()
+    summary = summarize(run, name=f"demo ({opts.scenario}, {opts.autopilot})")
+    summary["autopilot"] = {
+        "personality": opts.autopilot,
+        "received": dict(received.counts),
+        "accepted": dict(received.accepted),
+        "rejections": [f"{t:.1f}s {m}: {r}" for t, m, r in received.rejections[:10]],
+        "sources_after_takeover": sorted({s for t, _, s in run.autopilot_err_m if run.takeover_t_s is not None and t >= run.takeover_t_s}),
+    }
+    summary["bridge_sent"] = dict(getattr(bridge_stats, "sent", {}) or {})
+    summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, scenario.origin, "TerraSLAM demo")]
+    write_report(summary, out_dir / "report.json", out_dir / "report.md", title="TerraSLAM demo")
+    return summary
+
+
+def _ecef(sample) -> np.ndarray:
+    from gis.geodesy import geodetic_to_ecef
+
+    return geodetic_to_ecef(sample.lat_deg, sample.lon_deg, sample.h_ellipsoid_m)
+
+
+def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
+    from gis.geodesy import LocalFrame
+
+    ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
+    return float(np.hypot(ned[0], ned[1]))
+
+
+# --------------------------------------------------------------------------------------------
+# replay
+
+
+def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
+               progress: Callable[[int, int, str], None] | None = None) -> dict:
+    """Offline replay of a dataset: GNSS judged by the same monitor as live, no autopilot."""
+    from companion.dataset import read_dataset
+
+    ds = read_dataset(dataset_dir)
+    if not ds.gis_files:
+        raise ValueError(f"dataset {dataset_dir} lists no GIS model file (site.yaml gis)")
+    model = _load_first_model(ds.gis_files, cfg)
+    localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model)
+    monitor = GnssMonitor(cfg.switching)
+    run = RunLog()
+    n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)
+    lost_since: float | None = None
+    try:
+        for k, step in enumerate(ds.steps()):
+            if k >= n:
+                break
+            for s in step.gnss:
+                monitor.on_sample(s)
+                run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+            status = monitor.status(step.frame.t_s)
+            good = status.quality is GnssQuality.GOOD
+            if not good and lost_since is None:
+                lost_since = step.frame.t_s
+                run.takeover_t_s = run.takeover_t_s or step.frame.t_s
+                run.switch_events.append((step.frame.t_s, f"GNSS {status.quality.value}: {'; '.join(status.reasons)}"))
+            elif good:
+                lost_since = None
+            t0 = time.perf_counter()
+            rec = localizer.process(PipelineInput(step.frame, status.sample, good))
+            run.wall_track_ms.append((time.perf_counter() - t0) * 1e3)
+            monitor.on_fix(rec.fix)
+            run.records.append(rec)
+            if step.truth is not None:
+                run.truth_ecef_m[rec.seq] = step.truth.p_ecef_m
+            if progress is not None:
+                progress(k + 1, n, "")
+        run.alignment_events = list(localizer.events)
+        run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
+    finally:
+        localizer.close()
+    summary = summarize(run, name=f"replay {ds.name}")
+    summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, ds.origin, f"TerraSLAM replay of {ds.name}")]
+    write_report(summary, out_dir / "report.json", out_dir / "report.md", title=f"TerraSLAM replay of {ds.name}")
+    return summary
+
+
+def _load_first_model(paths: Iterable[Path], cfg: AppConfig) -> GisModel:
+    errors = []
+    for p in paths:
+        try:
+            return load_model(p, sample_spacing_m=cfg.gis.sample_spacing_m)
+        except Exception as e:  # try the next listed format; report all if none loads
+            errors.append(f"{p}: {e}")
+    raise ValueError("no GIS model could be loaded:\n  " + "\n  ".join(errors))

@@ -1,0 +1,155 @@
+"""Accuracy of emitted fixes against ground truth, and the output files of a run.
+
+evaluate(): per-fix 3D / horizontal / vertical error in the local NED frame at the truth
+position, the integrity check (true horizontal error > 3 × reported 1-σ h_acc, TerraSLAM-style
+accuracy figures mean/P50/P99/max). write_*(): the global trajectory as CSV (t, lat, lon, h),
+TUM (t x y z qx qy qz qw, ENU metres at the site origin) and GeoJSON (RFC 7946 LineString).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic
+from gis.types import GlobalFix
+
+
+def stats(x: np.ndarray) -> dict[str, float | None]:
+    """mean / p50 / p99 / max of a 1-D array (None when empty)."""
+    x = np.asarray(x, float)
+    if x.size == 0:
+        return {"mean": None, "p50": None, "p99": None, "max": None}
+    return {"mean": float(x.mean()), "p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)), "max": float(x.max())}
+
+
+@dataclass(frozen=True)
+class FixErrors:
+    """Errors of the fixes that had truth. t_s: (N,); err_ned_m: (N, 3); h_acc_m: (N,) reported."""
+
+    t_s: np.ndarray
+    err_ned_m: np.ndarray
+    h_acc_m: np.ndarray
+
+    @property
+    def err_3d_m(self) -> np.ndarray:
+        return np.linalg.norm(self.err_ned_m, axis=1)
+
+    @property
+    def err_h_m(self) -> np.ndarray:
+        return np.linalg.norm(self.err_ned_m[:, :2], axis=1)
+
+    @property
+    def err_v_m(self) -> np.ndarray:
+        return np.abs(self.err_ned_m[:, 2])
+
+    def integrity_violation_ratio(self) -> float | None:
+        """Fraction of fixes whose true horizontal error exceeds 3 × their reported 1-σ h_acc."""
+        if len(self.t_s) == 0:
+            return None
+        return float(np.mean(self.err_h_m > 3.0 * self.h_acc_m))
+
+    def summary(self) -> dict:
+        return {
+            "n": int(len(self.t_s)),
+            "global_error_m": stats(self.err_3d_m),
+            "horizontal_error_m": stats(self.err_h_m),
+            "vertical_error_m": stats(self.err_v_m),
+            "integrity_violation_ratio": self.integrity_violation_ratio(),
+        }
+
+
+def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray) -> FixErrors:
+    """Errors of ``fixes`` against truth positions (N, 3) ECEF given in the same order."""
+    if not fixes:
+        return FixErrors(np.zeros(0), np.zeros((0, 3)), np.zeros(0))
+    p = np.stack([f.p_ecef_m for f in fixes])
+    truth = np.asarray(truth_ecef_m, float).reshape(-1, 3)
+    lat, lon, _ = ecef_to_geodetic(truth)
+    err_ned = np.empty_like(p)
+    for i in range(len(p)):  # rotation differs per point; N is at most tens of thousands
+        R = R_ecef_enu(float(lat[i]), float(lon[i]))
+        e_enu = (p[i] - truth[i]) @ R
+        err_ned[i] = (e_enu[1], e_enu[0], -e_enu[2])
+    return FixErrors(np.array([f.t_s for f in fixes]), err_ned, np.array([f.h_acc_m for f in fixes]))
+
+
+def write_csv(fixes: list[GlobalFix], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "lat_deg", "lon_deg", "h_ellipsoid_m", "h_msl_m", "h_acc_m", "v_acc_m", "source"])
+        for x in fixes:
+            w.writerow([f"{x.t_s:.6f}", f"{x.lat_deg:.9f}", f"{x.lon_deg:.9f}", f"{x.h_ellipsoid_m:.4f}", f"{x.h_msl_m:.4f}",
+                        f"{x.h_acc_m:.4f}", f"{x.v_acc_m:.4f}", x.source.value])
+
+
+def write_tum(fixes: list[GlobalFix], origin: LocalFrame, path: Path) -> None:
+    """TUM trajectory format: t x y z qx qy qz qw, position in ENU metres at ``origin``.
+
+    Orientation is the body's in ENU when the fix carries q_ned_body, else identity.
+    """
+    R_enu_ned = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
+    with open(path, "w") as f:
+        f.write(f"# TUM trajectory, ENU metres at lat0={origin.lat0_deg} lon0={origin.lon0_deg} h0={origin.h0_ellipsoid_m} (WGS-84 ellipsoid)\n")
+        for x in fixes:
+            p = origin.ecef_to_enu(x.p_ecef_m)
+            if x.q_ned_body is not None:
+                w, qx, qy, qz = x.q_ned_body
+                R = R_enu_ned @ Rotation.from_quat([qx, qy, qz, w]).as_matrix()
+                qx, qy, qz, w = Rotation.from_matrix(R).as_quat()
+            else:
+                qx, qy, qz, w = 0.0, 0.0, 0.0, 1.0
+            f.write(f"{x.t_s:.6f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {qx:.6f} {qy:.6f} {qz:.6f} {w:.6f}\n")
+
+
+def write_geojson(fixes: list[GlobalFix], path: Path, properties: dict | None = None) -> None:
+    """RFC 7946 FeatureCollection: one LineString of [lon, lat, h_ellipsoid] (WGS-84)."""
+    coords = [[round(x.lon_deg, 9), round(x.lat_deg, 9), round(x.h_ellipsoid_m, 3)] for x in fixes]
+    fc = {
+        "type": "FeatureCollection",
+        "features": [{
+            "type": "Feature",
+            "geometry": {"type": "LineString", "coordinates": coords},
+            "properties": {"name": "terraslam", "height": "WGS-84 ellipsoidal metres", **(properties or {})},
+        }],
+    }
+    path.write_text(json.dumps(fc))
+
+
+def write_report(summary: dict, path_json: Path, path_md: Path | None = None, title: str = "TerraSLAM run") -> None:
+    path_json.write_text(json.dumps(summary, indent=2, default=_json_default))
+    if path_md is None:
+        return
+    lines = [f"# {title}", ""]
+    for key, value in summary.items():
+        if isinstance(value, dict):
+            lines.append(f"- **{key}**: " + ", ".join(f"{k} {_fmt(v)}" for k, v in value.items()))
+        elif isinstance(value, list):
+            continue
+        else:
+            lines.append(f"- **{key}**: {_fmt(value)}")
+    path_md.write_text("\n".join(lines) + "\n")
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3f}"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items()) + "}"
+    return str(v)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if hasattr(o, "__dataclass_fields__"):
+        return asdict(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
