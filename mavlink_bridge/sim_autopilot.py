@@ -488,8 +488,9 @@ class SimAutopilot:
             if self._due(mavlink.MAVLINK_MSG_ID_ALTITUDE, now) and self._truth is not None:
                 a = self._truth.alt_msl_m
                 out.append(mav.altitude_encode(int(now * 1e6), a, a, math.nan, math.nan, math.nan, math.nan))
-            if self._due(mavlink.MAVLINK_MSG_ID_GPS2_RAW, now) and self._mgps is not None:
-                m, (fix, _) = self._mgps, self._mgps_usable(now)
+            if self._due(mavlink.MAVLINK_MSG_ID_GPS2_RAW, now):  # the MAVLink GPS instance, fix 0 until fed
+                m = self._mgps or {"lat": 0.0, "lon": 0.0, "alt": 0.0, "hdop": 655.35, "sats": 0}
+                fix, _ = self._mgps_usable(now)
                 out.append(mav.gps2_raw_encode(int(now * 1e6), fix, round(m["lat"] * 1e7), round(m["lon"] * 1e7), round(m["alt"] * 1000),
                                                min(65534, round(m["hdop"] * 100)), 65535, 65535, 65535, m["sats"], 0, 0))
             if self._due(mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, now):
