@@ -21,7 +21,7 @@ class AlignmentConfig(BaseModel):
 
     finetune_every_frames: int = Field(200, ge=1, le=100_000, description="online ICP fine-tuning period (TerraSLAM §4.4)")
     crop_size_m: float = Field(150.0, gt=10, le=5000, description="side of the GIS crop used for registration (digital-twin §III-E)")
-    min_fitness: float = Field(0.5, ge=0, le=1, description="registration rejected below this inlier fraction (ground alone gives ~0.4 at a wrong place)")
+    min_fitness: float = Field(0.7, ge=0, le=1, description="registration rejected below this inlier fraction (ground alone, or a local minimum a few metres off, gives 0.4-0.5)")
     max_rmse_m: float = Field(1.0, gt=0, description="registration rejected above this inlier RMSE")
     max_jump_m: float = Field(5.0, gt=0, description="registration rejected if it moves the map more than this")
     bootstrap_from_gnss: bool = Field(True, description="without T_rough, bootstrap the alignment from good GNSS (digital-twin §III-D)")

@@ -111,14 +111,18 @@ class FineTuner:
             return Registration(None, f"GIS crop holds only {len(idx)} points (outside the model?)", n_target=len(idx))
         tgt, tgt_n = _voxel_with_normals(self.model.points_enu[idx] - c, self.model.normals_enu[idx], cfg.target_voxel_m)
         tree = cKDTree(tgt)
+        # Correspondence distances never drop below the model's own point spacing (a sparse
+        # model would otherwise lose true correspondences and report a low fitness).
+        spacing = float(np.median(tree.query(tgt[:: max(1, len(tgt) // 300)], k=2)[0][:, 1]))
+        min_corr = 1.5 * spacing
 
-        icp = _icp(src, tgt, tgt_n, tree, Sim3.identity(), cfg)
+        icp = _icp(src, tgt, tgt_n, tree, Sim3.identity(), cfg, min_corr)
         reason = self._gate(icp, cfg)
         used_fpfh = False
         if reason and cfg.fpfh_fallback:
             guess = _fpfh_guess(src, tgt, tgt_n, cfg)
             if guess is not None:
-                icp2 = _icp(src, tgt, tgt_n, tree, guess, cfg)
+                icp2 = _icp(src, tgt, tgt_n, tree, guess, cfg, min_corr)
                 reason2 = self._gate(icp2, cfg)
                 if not reason2 or icp2.fitness > icp.fitness:
                     icp, reason, used_fpfh = icp2, reason2, True
@@ -181,12 +185,13 @@ def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
     return sig_p, sig_r, float(np.sqrt(cov[6, 6]))
 
 
-def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0: Sim3, cfg: AlignmentConfig) -> _Icp:
+def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0: Sim3, cfg: AlignmentConfig,
+         min_corr_m: float) -> _Icp:
     """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in centred coordinates."""
     T = T0
     k = cfg.robust_kernel_m
     for level in range(3):
-        max_d = cfg.max_correspondence_m / 2**level
+        max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
             x = T.apply(src)
             d, j = tree.query(x, distance_upper_bound=max_d)
@@ -209,7 +214,7 @@ def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0:
                 break
     # Final inliers, RMSE and the Hessian of Eq. 8–9 (unweighted, inliers only).
     x = T.apply(src)
-    d, j = tree.query(x, distance_upper_bound=cfg.max_correspondence_m / 4)
+    d, j = tree.query(x, distance_upper_bound=max(cfg.max_correspondence_m / 4, min_corr_m))
     ok = np.isfinite(d)
     n, b, x = tgt_n[j[ok]], tgt[j[ok]], x[ok]
     r = np.einsum("ij,ij->i", n, x - b)
