@@ -105,7 +105,7 @@ def test_world_labels_and_geometry_api(world):
     om, labels = world.mesh_o3d()
     assert len(labels) == len(om.triangles)
     assert {GROUND, BUILDING, ROAD, 5, 1} <= set(np.unique(labels))  # ground, building, road, vegetation, clutter
-    pts, lab = world.sample_points_enu(2.0, labels=(BUILDING,))
+    pts, lab = world.gis_points_enu(2.0, labels=(BUILDING,))
     assert (lab == BUILDING).all() and len(pts) > 1000
     # buildings stand on the terrain, roofs at ground + height
     for b in world.buildings:

@@ -59,7 +59,7 @@ def write_mesh_ply(world: World, path: Path, crs: str) -> Path:
 def write_points_las(world: World, path: Path, crs: str, spacing_m: float = 1.0, margin_m: float = 150.0,
                      seed: int = 0) -> Path:
     """Area-uniform samples of the model surface (within the site + margin) as LAS/LAZ."""
-    pts, labels = world.sample_points_enu(spacing_m, seed=seed)
+    pts, labels = world.gis_points_enu(spacing_m, seed=seed)
     lim = world.site_half_m + margin_m
     keep = (np.abs(pts[:, 0]) <= lim) & (np.abs(pts[:, 1]) <= lim)
     pts, labels = pts[keep], labels[keep]

@@ -439,7 +439,7 @@ class World:
         om.compute_triangle_normals()
         return om, m.labels.copy()
 
-    def sample_points_enu(self, spacing_m: float = 1.0, labels=(GROUND, BUILDING, ROAD), seed: int = 0,
+    def gis_points_enu(self, spacing_m: float = 1.0, labels=(GROUND, BUILDING, ROAD), seed: int = 0,
                           max_points: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
         """Area-uniform surface samples (about one per spacing_m²) of triangles with the given labels,
         within the terrain extent: (points (N, 3) ENU, labels (N,) uint8)."""
