@@ -1,8 +1,65 @@
-"""`terraslam bench` — benchmarks (issue 8)."""
+"""`terraslam bench` — TerraSLAM's evaluation figures on our own system (issue 8, docs/BENCHMARKS.md)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
 from companion.cli import app, fail
 
 
 @app.command("bench")
-def bench() -> None:
-    """Run benchmarks (not available yet)."""
-    fail("`bench` is not available yet")
+def bench(
+    scenario: Optional[str] = typer.Option(None, "--scenario", "-s", help="simulator scenario (nominal, stale, dark, bright, fast, loop, ...)"),
+    dataset: Optional[Path] = typer.Option(None, "--dataset", help="dataset folder with truth (docs/DATASET.md) instead of a scenario"),
+    suite: bool = typer.Option(False, "--suite", help="all of nominal, stale, dark, bright, fast, loop + one comparison table"),
+    frames: int = typer.Option(300, "--frames", min=30, help="camera frames per run (15 fps; GNSS is lost after 60 % of the flight)"),
+    out: Path = typer.Option(Path("out/bench"), "--out", "-o", help="output folder (bench.json, bench.md, PNG plots)"),
+    ablation: bool = typer.Option(False, "--ablation", help="also run baseline / +GA / +PLM / +RLC (TerraSLAM Fig. 14)"),
+    sweep: Optional[str] = typer.Option(None, "--sweep", help="map-size sweep of fine-tuning cost: box-city extents in m, e.g. 1000,10000"),
+    seed: int = typer.Option(0, "--seed"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Run the real pipeline over a scenario / dataset / the suite and write bench.json, bench.md and plots."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from companion.bench import bench_one, bench_suite, markdown_summary, suite_table
+    from companion.config import ConfigError, load_config
+    from companion.sim.scenario import SCENARIOS
+
+    if sum(x is not None and x is not False for x in (scenario, dataset, suite or None)) != 1:
+        fail("give exactly one of --scenario NAME, --dataset DIR or --suite")
+    if scenario is not None and scenario not in SCENARIOS:
+        fail(f"--scenario: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}")
+    if dataset is not None and not dataset.is_dir():
+        fail(f"--dataset: {dataset} is not a folder")
+    try:
+        extents = tuple(float(x) for x in sweep.split(",")) if sweep else ()
+    except ValueError:
+        fail(f"--sweep: expected comma-separated extents in metres, got {sweep!r}")
+    try:
+        cfg = load_config(config)
+    except ConfigError as e:
+        fail(str(e))
+    console = Console()
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[state]}"),
+                  TimeElapsedColumn(), console=console) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(label, k, n, state):
+            if label not in tasks:
+                tasks[label] = bar.add_task(label, total=n, state="")
+            bar.update(tasks[label], completed=k, total=n, state=state)
+
+        try:
+            if suite:
+                figs = bench_suite(cfg, out, n_frames=frames, seed=seed, ablation=ablation, progress=progress)
+            else:
+                fig, _ = bench_one(cfg, out, scenario=scenario, dataset=dataset, n_frames=frames, seed=seed,
+                                   ablation=ablation, sweep_extents_m=extents, progress=progress)
+        except (ValueError, FileNotFoundError) as e:
+            fail(str(e))
+    console.print(suite_table(figs) if suite else markdown_summary(fig), markup=False)
+    console.print(f"Outputs in {out}/")
