@@ -56,6 +56,7 @@ def open_connection(url: str, baud: int, source_system: int, source_component: i
     conn = mavutil.mavlink_connection(
         url, baud=baud, source_system=source_system, source_component=source_component,
         dialect=DIALECT, autoreconnect=True, robust_parsing=True,
+        retries=0, reconnect_delay=0.1,  # one quick attempt: Link owns the back-off, pymavlink must not block
     )
     conn.mav.WIRE_PROTOCOL_VERSION = "2.0"
     if signing_key is not None:
