@@ -19,6 +19,9 @@ def generate(
     seed: int = typer.Option(0, "--seed", help="world / flight / noise seed"),
     frames: Optional[int] = typer.Option(None, "--frames", "-n", min=1, help="number of frames (default: whole flight)"),
     gnss_timeline: Optional[str] = typer.Option(None, "--gnss", help="scripted GNSS events, e.g. 'dropout@60-90,spoof_drift@120'"),
+    stale: Optional[str] = typer.Option(None, "--stale", help="GIS model staleness preset: fresh | F-A | F-B (default: the scenario's)"),
+    registration_error_m: Optional[float] = typer.Option(None, "--registration-error-m", min=0.0, max=50.0,
+                                                         help="global geo-registration error of the GIS model (m)"),
     jpg: bool = typer.Option(False, "--jpg", help="write JPEG (q95) instead of lossless PNG"),
     force: bool = typer.Option(False, "--force", help="write into a non-empty directory"),
 ) -> None:
@@ -28,6 +31,7 @@ def generate(
     from companion.dataset import write_dataset
     from companion.sim import SCENARIOS, make_scenario
     from companion.sim.gnss import parse_timeline
+    from companion.sim.stale import STALE_PRESETS
 
     if scenario not in SCENARIOS:
         fail(f"unknown scenario {scenario!r}; choose one of: {', '.join(SCENARIOS)}")
@@ -39,6 +43,12 @@ def generate(
             overrides["gnss"] = replace(SCENARIOS[scenario].gnss, events=parse_timeline(gnss_timeline))
         except ValueError as e:
             fail(f"--gnss: {e}")
+    if stale is not None:
+        if stale not in STALE_PRESETS:
+            fail(f"--stale: unknown preset {stale!r}; choose one of: {', '.join(STALE_PRESETS)}")
+        overrides["stale"] = STALE_PRESETS[stale]
+    if registration_error_m is not None:
+        overrides["stale"] = replace(overrides.get("stale", SCENARIOS[scenario].stale), registration_error_m=registration_error_m)
     try:
         sc = make_scenario(scenario, seed=seed, n_frames=frames, **overrides)
     except ValueError as e:

@@ -52,6 +52,20 @@ def test_generate_with_gnss_timeline_and_errors(runner, tmp_path):
     assert r.exit_code != 0 and "n_frames must be in" in r.output
 
 
+def test_generate_stale_preset_and_registration_error(runner, tmp_path):
+    import yaml
+
+    out = tmp_path / "fa"
+    r = runner.invoke(app, ["sim", "generate", "-s", "nominal", "-o", str(out), "-n", "2", "--stale", "F-A",
+                            "--registration-error-m", "0.35"])
+    assert r.exit_code == 0, r.output
+    st = yaml.safe_load((out / "gis" / "stale_truth.yaml").read_text())
+    assert np.hypot(*np.asarray(st["T_model_world_enu"])[:2, 3]) == pytest.approx(0.35)
+    assert st["changed_building_ids"] and st["spec"]["registration_error_m"] == 0.35
+    r = runner.invoke(app, ["sim", "generate", "-s", "nominal", "-o", str(tmp_path / "q"), "--stale", "F-Z"])
+    assert r.exit_code != 0 and "unknown preset 'F-Z'" in r.output
+
+
 def test_reader_names_the_broken_file(runner, tmp_path):
     src = tmp_path / "ok"
     assert runner.invoke(app, ["sim", "generate", "-s", "nominal", "-o", str(src), "-n", "2"]).exit_code == 0

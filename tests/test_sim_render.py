@@ -89,3 +89,13 @@ def test_texture_everywhere_and_lighting_variants():
         means[name], saturated[name] = g.mean(), (g >= 250).mean()
     assert means["dark"] < 0.6 * means["nominal"] and means["bright"] > 1.5 * means["nominal"]
     assert saturated["bright"] > 0.1 > saturated["nominal"]
+
+
+def test_motion_blur_in_fast_flight():
+    from dataclasses import replace
+
+    sc = make_scenario("fast", seed=1, n_frames=400)
+    sharp = make_scenario("fast", seed=1, n_frames=400, spec=replace(sc.spec, motion_blur=False))
+    assert np.hypot(*sc._motion_px(399)) > 1.0  # ~13 m/s at 80 m with a 1/30 s exposure
+    lap = [cv2.Laplacian(cv2.cvtColor(s.render(399).image_bgr, cv2.COLOR_BGR2GRAY), cv2.CV_64F).var() for s in (sc, sharp)]
+    assert lap[0] < 0.8 * lap[1]

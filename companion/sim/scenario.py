@@ -60,7 +60,7 @@ SCENARIOS: dict[str, ScenarioSpec] = {
     "dark": ScenarioSpec("dark", flight=_LOOP, lighting="dark"),
     "bright": ScenarioSpec("bright", flight=_LOOP, lighting="bright"),
     "fast": ScenarioSpec("fast", flight=replace(_LOOP, speed_mps=13.0, a_max_mps2=3.0, a_lat_max_mps2=4.0, laps=1.5),
-                         motion_blur=True, exposure_s=1 / 60),
+                         motion_blur=True, exposure_s=1 / 30),
     "slow": ScenarioSpec("slow", flight=replace(_LOOP, speed_mps=3.5)),
     "loop": ScenarioSpec("loop", flight=replace(_LOOP, laps=2.25, speed_mps=6.0)),
     "survey": ScenarioSpec("survey", flight=FlightSpec(kind="survey", speed_mps=8.0, altitude_m=110.0, size_m=240.0,
