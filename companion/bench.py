@@ -465,7 +465,7 @@ def markdown_summary(fig: dict) -> str:
         ("fix ratio after GNSS loss", _fmt(fig["fix_ratio"]), "–"),
         ("ATE after Sim(3) [% of path]", _fmt(fig["ate_sim3_percent"]), "–"),
         ("alignment error rough / fine [m]", f"{_fmt(fig['alignment_error_m']['rough'])} ({fig['alignment_error_m']['rough_source'] or '–'}) / "
-         f"{_fmt(fig['alignment_error_m']['fine'])}", f"{PUBLISHED['alignment_error_m']['rough']} / {PUBLISHED['alignment_error_m']['fine']}"),
+         f"{_fmt(fig['alignment_error_m']['fine'])}", f"rough {PUBLISHED['alignment_error_m']['rough']}; fine {PUBLISHED['alignment_error_m']['fine']}"),
         ("integrity violations (err > 3σ)", _fmt(fig["integrity_violation_ratio"]), "–"),
         ("fine-tune mean / P99 [ms]", f"{_fmt(fig['finetune_ms']['mean'], 1)} / {_fmt(fig['finetune_ms']['p99'], 1)}", "–"),
         ("RSS start / peak / end [MiB]", " / ".join(_fmt(fig["rss_mb"][k], 0) for k in ("start", "peak", "end")), "–"),
