@@ -31,12 +31,12 @@ from typing import Callable
 import numpy as np
 import psutil
 
-from companion.app import RunLog, SimClock, _ecef, build_localizer, summarize
+from companion.app import RunLog, SimClock, build_localizer, summarize
 from companion.config import AppConfig
 from companion.evaluate import fix_errors, stats
 from gis.align.fine import enu_sim3
 from gis.align.rough import alignment_error_m
-from gis.geodesy import LocalFrame
+from gis.geodesy import LocalFrame, geodetic_to_ecef
 from gis.model import GisModel
 from gis.sim3 import compose, umeyama
 from gis.types import Alignment, AlignmentSource
@@ -166,7 +166,7 @@ def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.nd
             clock.advance_to(step.frame.t_s)
             for s in step.gnss:
                 autopilot.feed_gnss(s)
-                run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+                run.gnss_ecef_m.append((s.t_s, geodetic_to_ecef(s.lat_deg, s.lon_deg, s.h_ellipsoid_m), s.fix_type >= 3))
             for a in step.attitude:
                 autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
             if step.truth is not None:
@@ -214,7 +214,7 @@ def gnss_loss_time_s(duration_s: float) -> float:
     return min(30.0, 0.6 * duration_s)
 
 
-def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int = 0, fps: float = 15.0,
+def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int = 0, fps: float = 10.0,
                    gnss_loss_at_s: float | None = None, work_dir: Path,
                    progress: Callable[[int, int, str], None] | None = None) -> BenchRun:
     """One simulator scenario, GNSS dropped at ``gnss_loss_at_s`` (default ``gnss_loss_time_s``)."""
@@ -245,13 +245,13 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
 def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None,
                   progress: Callable[[int, int, str], None] | None = None) -> BenchRun:
     """Any dataset in the documented layout (docs/DATASET.md); it needs truth for the error figures."""
-    from companion.app import _load_first_model
     from companion.dataset import read_dataset
+    from gis.loaders import load_model
 
     ds = read_dataset(dataset_dir)
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir}: site.yaml lists no GIS model file (gis)")
-    model = _load_first_model(ds.gis_files, cfg)
+    model = load_model(ds.gis_files[0], sample_spacing_m=cfg.gis.sample_spacing_m)
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
@@ -556,7 +556,7 @@ Progress = Callable[[str, int, int, str], None]  # (run label, frame, total, bri
 
 
 def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dataset: Path | None = None,
-              n_frames: int = 300, seed: int = 0, ablation: bool = False, sweep_extents_m: tuple[float, ...] = (),
+              n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False, sweep_extents_m: tuple[float, ...] = (),
               progress: Progress | None = None) -> tuple[dict, BenchRun]:
     """One scenario (or dataset): run, figures, optional ablation and map-size sweep, outputs."""
     if (scenario is None) == (dataset is None):
@@ -566,7 +566,7 @@ def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dat
         cb = (lambda k, n, st: progress(label, k, n, st)) if progress else None
         if dataset is not None:
             return bench_dataset(c, dataset, n_frames, cb)
-        return bench_scenario(c, scenario, n_frames, seed=seed, work_dir=out_dir, progress=cb)
+        return bench_scenario(c, scenario, n_frames, seed=seed, fps=fps, work_dir=out_dir, progress=cb)
 
     br = go(cfg, scenario or str(dataset))
     fig = figures(br, cfg)
@@ -587,12 +587,12 @@ def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dat
     return fig, br
 
 
-def bench_suite(cfg: AppConfig, out_dir: Path, *, n_frames: int = 300, seed: int = 0, ablation: bool = False,
+def bench_suite(cfg: AppConfig, out_dir: Path, *, n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False,
                 scenarios: tuple[str, ...] = SUITE, progress: Progress | None = None) -> list[dict]:
     """Every scenario into out_dir/NAME/, then suite.md (comparison table), suite.json, suite_boxes.png."""
     figs, runs = [], []
     for name in scenarios:
-        fig, br = bench_one(cfg, out_dir / name, scenario=name, n_frames=n_frames, seed=seed,
+        fig, br = bench_one(cfg, out_dir / name, scenario=name, n_frames=n_frames, seed=seed, fps=fps,
                             ablation=ablation and name == "nominal", progress=progress)
         figs.append(fig)
         runs.append(br)

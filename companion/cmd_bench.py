@@ -14,7 +14,8 @@ def bench(
     scenario: Optional[str] = typer.Option(None, "--scenario", "-s", help="simulator scenario (nominal, stale, dark, bright, fast, loop, ...)"),
     dataset: Optional[Path] = typer.Option(None, "--dataset", help="dataset folder with truth (docs/DATASET.md) instead of a scenario"),
     suite: bool = typer.Option(False, "--suite", help="all of nominal, stale, dark, bright, fast, loop + one comparison table"),
-    frames: int = typer.Option(300, "--frames", min=30, help="camera frames per run (15 fps; GNSS is lost after 60 % of the flight)"),
+    frames: int = typer.Option(300, "--frames", min=30, help="camera frames per run (GNSS is lost after 60 % of the flight, at most 30 s in)"),
+    fps: float = typer.Option(10.0, "--fps", min=1.0, max=60.0, help="simulated camera rate"),
     out: Path = typer.Option(Path("out/bench"), "--out", "-o", help="output folder (bench.json, bench.md, PNG plots)"),
     ablation: bool = typer.Option(False, "--ablation", help="also run baseline / +GA / +PLM / +RLC (TerraSLAM Fig. 14)"),
     sweep: Optional[str] = typer.Option(None, "--sweep", help="map-size sweep of fine-tuning cost: box-city extents in m, e.g. 1000,10000"),
@@ -55,9 +56,9 @@ def bench(
 
         try:
             if suite:
-                figs = bench_suite(cfg, out, n_frames=frames, seed=seed, ablation=ablation, progress=progress)
+                figs = bench_suite(cfg, out, n_frames=frames, seed=seed, fps=fps, ablation=ablation, progress=progress)
             else:
-                fig, _ = bench_one(cfg, out, scenario=scenario, dataset=dataset, n_frames=frames, seed=seed,
+                fig, _ = bench_one(cfg, out, scenario=scenario, dataset=dataset, n_frames=frames, seed=seed, fps=fps,
                                    ablation=ablation, sweep_extents_m=extents, progress=progress)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
