@@ -1,0 +1,88 @@
+"""ORB features spread over the image (OpenCV CPU path) and the backend switch.
+
+Keypoints are returned undistorted (pixels of the ideal pinhole camera K), so everything
+downstream uses K only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from slam.config import SlamConfig
+from slam.types import CameraModel
+
+
+@dataclass(frozen=True)
+class Features:
+    uv_px: np.ndarray  # (N,2) float64, undistorted pixels
+    desc: np.ndarray  # (N,32) uint8, 256-bit binary descriptors
+    octave: np.ndarray  # (N,) int pyramid level (0 = full resolution)
+
+    def __len__(self) -> int:
+        return len(self.uv_px)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image
+
+
+def keep_spread(uv: np.ndarray, response: np.ndarray, shape: tuple[int, int], n_keep: int,
+                grid: tuple[int, int] = (16, 16)) -> np.ndarray:
+    """Indices of at most n_keep keypoints, best first within each grid cell, round-robin over cells.
+
+    OpenCV ORB keeps the globally strongest corners, which bunch up on high-contrast texture;
+    ORB-SLAM's per-cell distribution is what keeps the pose well conditioned.
+    """
+    h, w = shape
+    cell = (np.clip((uv[:, 1] * grid[0] / h).astype(int), 0, grid[0] - 1) * grid[1]
+            + np.clip((uv[:, 0] * grid[1] / w).astype(int), 0, grid[1] - 1))
+    order = np.lexsort((-response, cell))  # by cell, strongest first
+    sorted_cells = cell[order]
+    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+    rank = np.arange(len(order)) - first  # rank of each keypoint within its cell
+    pick = order[np.lexsort((-response[order], rank))]
+    return pick[:n_keep]
+
+
+def undistort_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
+    if not camera.is_distorted or len(uv) == 0:
+        return uv.astype(np.float64)
+    return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), camera.K, camera.dist,
+                               P=camera.K).reshape(-1, 2)
+
+
+def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray], Features]:
+    """OpenCV ORB (8 levels, x1.2) over-detecting 2x, then spread over a 16x16 grid."""
+    orb = cv2.ORB_create(nfeatures=2 * n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+
+    def extract(image: np.ndarray) -> Features:
+        gray = to_gray(image)
+        kps = orb.detect(gray, None)
+        if not kps:
+            return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
+        uv = np.array([k.pt for k in kps])
+        resp = np.array([k.response for k in kps])
+        keep = keep_spread(uv, resp, gray.shape, n_features)
+        kps = [kps[i] for i in keep]
+        kps, desc = orb.compute(gray, kps)
+        if desc is None or not kps:
+            return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
+        uv = np.array([k.pt for k in kps])
+        octave = np.array([k.octave for k in kps])
+        return Features(undistort_px(camera, uv), desc, octave)
+
+    return extract
+
+
+def make_extractor(camera: CameraModel, config: SlamConfig) -> Callable[[np.ndarray], Features]:
+    """Feature extractor chosen by ``config.feature_backend``."""
+    if config.feature_backend == "torch":
+        from slam.torch_orb import make_orb_torch  # torch is imported only when selected
+
+        return make_orb_torch(camera, config.n_features, config.n_patches, config.torch_device)
+    return make_orb_cpu(camera, config.n_features)

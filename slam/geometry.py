@@ -1,0 +1,203 @@
+"""Small geometry helpers on 4x4 transforms, projection, two-view initialization and Sim(3).
+
+Conventions: ``T_cam_slam`` maps SLAM points into the camera (the pose tracking estimates);
+``T_slam_cam`` is its inverse. Keypoints are undistorted pixels, so only K is used here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t).reshape(3)
+    return T
+
+
+def T_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return make_T(cv2.Rodrigues(rvec)[0], tvec)
+
+
+def rvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].reshape(3, 1).copy()
+
+
+def camera_center(T_cam_slam: np.ndarray) -> np.ndarray:
+    return -T_cam_slam[:3, :3].T @ T_cam_slam[:3, 3]
+
+
+def project(K: np.ndarray, T_cam_slam: np.ndarray, p_slam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project (N,3) SLAM points; returns (N,2) pixels and (N,) depths (z in the camera)."""
+    p_cam = p_slam @ T_cam_slam[:3, :3].T + T_cam_slam[:3, 3]
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (p_cam[:, :2] / z[:, None]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    return uv, z
+
+
+# --- Sim(3) as a 4x4 matrix [[s R, t], [0, 1]] mapping points -----------------------------------
+
+def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    S = np.eye(4)
+    S[:3, :3] = s * R
+    S[:3, 3] = t
+    return S
+
+
+def sim3_scale(S: np.ndarray) -> float:
+    return float(np.cbrt(np.linalg.det(S[:3, :3])))
+
+
+def correct_pose_by_sim3(T_cam_slam: np.ndarray, S_new_old: np.ndarray) -> np.ndarray:
+    """Rigid camera pose after the map is moved by the similarity ``p_new = S p_old``.
+
+    The camera centre moves with the map (c' = S c) and its rotation turns with S's rotation;
+    the scale is absorbed into the map, so the pose stays rigid.
+    """
+    s = sim3_scale(S_new_old)
+    R_s = S_new_old[:3, :3] / s
+    T_slam_cam = inv_T(T_cam_slam)
+    new = np.eye(4)
+    new[:3, :3] = R_s @ T_slam_cam[:3, :3]
+    new[:3, 3] = S_new_old[:3, :3] @ T_slam_cam[:3, 3] + S_new_old[:3, 3]
+    return inv_T(new)
+
+
+def umeyama_sim3(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares similarity dst ≈ S src (Umeyama 1991).
+
+    Written here because slam/ may not import gis/ (gis.sim3 has the same solver); OpenCV's
+    estimateAffine3D does not return a similarity with RANSAC.
+    """
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    E = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        E[2, 2] = -1
+    R = U @ E @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ E) / max(var_s, 1e-12))
+    return sim3_matrix(s, R, mu_d - s * R @ mu_s)
+
+
+def ransac_sim3(src: np.ndarray, dst: np.ndarray, thresh: float, iters: int = 200,
+                rng: np.random.Generator | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+    """RANSAC over minimal 3-point Umeyama fits; returns (S or None, inlier mask)."""
+    rng = rng or np.random.default_rng(0)
+    n = len(src)
+    best = np.zeros(n, bool)
+    if n < 3:
+        return None, best
+    for _ in range(iters):
+        idx = rng.choice(n, 3, replace=False)
+        S = umeyama_sim3(src[idx], dst[idx])
+        err = np.linalg.norm(src @ S[:3, :3].T + S[:3, 3] - dst, axis=1)
+        inl = err < thresh
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < 3:
+        return None, best
+    S = umeyama_sim3(src[best], dst[best])
+    err = np.linalg.norm(src @ S[:3, :3].T + S[:3, 3] - dst, axis=1)
+    return S, err < thresh
+
+
+# --- triangulation -----------------------------------------------------------------------------
+
+def triangulate(K: np.ndarray, T1: np.ndarray, T2: np.ndarray, uv1: np.ndarray, uv2: np.ndarray,
+                max_reproj_px: float = 2.0, min_parallax_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate matched pixels seen from poses T1, T2 (T_cam_slam); returns (N,3) points, good mask."""
+    if len(uv1) == 0:
+        return np.zeros((0, 3)), np.zeros(0, bool)
+    P1 = K @ T1[:3]
+    P2 = K @ T2[:3]
+    X = cv2.triangulatePoints(P1, P2, uv1.T.astype(np.float64), uv2.T.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (X[:3] / X[3]).T
+    good = np.isfinite(p).all(1)
+    p[~good] = 0
+    for T, uv in ((T1, uv1), (T2, uv2)):
+        proj, z = project(K, T, p)
+        good &= z > 0
+        good &= np.linalg.norm(proj - uv, axis=1) < max_reproj_px
+    c1, c2 = camera_center(T1), camera_center(T2)
+    r1, r2 = p - c1, p - c2
+    cosang = (r1 * r2).sum(1) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1) + 1e-12)
+    good &= cosang < np.cos(np.deg2rad(min_parallax_deg))
+    return p, good
+
+
+@dataclass
+class TwoViewInit:
+    T_cam2_cam1: np.ndarray  # rigid, unit-free translation
+    points_cam1: np.ndarray  # (N,3) triangulated in camera-1 frame
+    good: np.ndarray  # (N,) mask over the input matches
+    model: str  # "homography" | "essential"
+
+
+def _score_reproj(err2: np.ndarray, th2: float) -> float:
+    """ORB-SLAM style model score: sum of (th - e^2) over inliers (chi-square gate)."""
+    return float(np.clip(th2 - err2, 0, None).sum())
+
+
+def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_points: int = 80,
+                        min_parallax_deg: float = 1.0) -> TwoViewInit | None:
+    """Monocular initialization with homography-vs-essential selection (ORB-SLAM, R_H = S_H/(S_H+S_F)).
+
+    Aerial imagery is often near-planar (ground seen from altitude) where the essential matrix is
+    ill-conditioned, hence the homography branch decomposed with cv2.decomposeHomographyMat.
+    """
+    if len(uv1) < min_points:
+        return None
+    H, mh = cv2.findHomography(uv1, uv2, cv2.RANSAC, 2.0)
+    E, me = cv2.findEssentialMat(uv1, uv2, K, cv2.RANSAC, 0.999, 1.0)
+    if H is None or E is None or E.shape != (3, 3):
+        return None
+    # symmetric transfer error for H, Sampson-like epipolar error for E (both in px^2)
+    ph = cv2.perspectiveTransform(uv1.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+    eh = ((ph - uv2) ** 2).sum(1)
+    Kinv = np.linalg.inv(K)
+    F = Kinv.T @ E @ Kinv
+    x1 = np.c_[uv1, np.ones(len(uv1))]
+    x2 = np.c_[uv2, np.ones(len(uv2))]
+    l2 = x1 @ F.T
+    ef = (x2 * l2).sum(1) ** 2 / (l2[:, 0] ** 2 + l2[:, 1] ** 2 + 1e-12)
+    s_h, s_f = _score_reproj(eh, 5.99), _score_reproj(ef, 3.84)
+    r_h = s_h / max(s_h + s_f, 1e-9)
+    candidates: list[tuple[np.ndarray, np.ndarray, str]] = []
+    if r_h > 0.45:
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
+        candidates += [(R, t.reshape(3), "homography") for R, t in zip(Rs, ts)]
+    else:
+        R1, R2, t = cv2.decomposeEssentialMat(E)
+        candidates += [(R, s * t.reshape(3), "essential") for R in (R1, R2) for s in (1, -1)]
+    best: TwoViewInit | None = None
+    best_n = 0
+    T1 = np.eye(4)
+    for R, t, model in candidates:
+        n = np.linalg.norm(t)
+        if n < 1e-9:
+            continue
+        T2 = make_T(R, t / n)
+        p, good = triangulate(K, T1, T2, uv1, uv2, max_reproj_px=4.0, min_parallax_deg=min_parallax_deg)
+        if good.sum() > best_n:
+            best_n = int(good.sum())
+            best = TwoViewInit(T2, p, good, model)
+    if best is None or best_n < min_points:
+        return None
+    return best

@@ -1,0 +1,357 @@
+"""Background thread: local mapping (triangulation, culling, local BA with PLM) and loop closing
+(place recognition, Sim(3) verification, full or recursive correction). Nothing here is called
+from the tracking thread; results reach it through ``Shared`` by reference swap."""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.ba import BAProblem, BAResult, BAWorker
+from slam.config import SlamConfig
+from slam.geometry import camera_center, correct_pose_by_sim3, ransac_sim3, triangulate
+from slam.map import Keyframe, SlamMap
+from slam.matching import match_bf
+from slam.place import PlaceIndex
+from slam.plm import plm_window, recursive_loop_closing
+from slam.tracking import Shared
+from slam.types import MapUpdate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MappingStats:
+    local_mapping_ms: list[float] = field(default_factory=list)  # whole keyframe processing
+    local_ba_ms: list[float] = field(default_factory=list)
+    ba_window: list[int] = field(default_factory=list)
+    loop_ms: list[float] = field(default_factory=list)  # loop correction (BA part), per closed loop
+    loops: list[tuple[int, int]] = field(default_factory=list)  # (old kf id, current kf id)
+
+
+@dataclass
+class _Reset:
+    new_map: SlamMap
+
+
+_STOP = object()
+
+
+class LocalMapper:
+    def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
+                 reset_counter: int = 0) -> None:
+        self.K = K
+        self.config = config
+        self.shared = shared
+        self.map = slam_map
+        self.reset_counter = reset_counter
+        self.stats = MappingStats()
+        self.updates: queue.SimpleQueue[MapUpdate] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._place = PlaceIndex()
+        self._ba = BAWorker()
+        self._lm_version = 0
+        self._correction_gen = 0
+        self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
+        self._thread.start()
+
+    # --- called from the tracking thread (non-blocking) -----------------------------------------
+    def insert_keyframe(self, kf: Keyframe) -> None:
+        self._inbox.put(kf)
+
+    def reset(self, new_map: SlamMap) -> None:
+        self._inbox.put(_Reset(new_map))
+
+    def close(self) -> None:
+        self._inbox.put(_STOP)
+        self._thread.join(timeout=30)
+        self._ba.close()
+
+    def idle(self) -> bool:
+        return self._inbox.empty() and not self.shared.mapping_busy
+
+    def wait_idle(self, timeout_s: float = 60.0) -> bool:
+        """For offline use/tests: wait until queued keyframes are processed."""
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            if self._inbox.empty() and not self._working:
+                return True
+            time.sleep(0.01)
+        return False
+
+    # --- thread ---------------------------------------------------------------------------------
+    _working = False
+
+    def _run(self) -> None:
+        while True:
+            item = self._inbox.get()
+            if item is _STOP:
+                return
+            self._working = True
+            try:
+                if isinstance(item, _Reset):
+                    self.map = item.new_map
+                    self._place = PlaceIndex()
+                    self.reset_counter += 1
+                else:
+                    self._process(item)
+            except Exception:  # keep mapping alive; tracking continues on the last local map
+                log.exception("local mapping failed on a keyframe")
+            finally:
+                self._working = False
+                self.shared.mapping_busy = not self._inbox.empty()
+
+    def _process(self, kf: Keyframe) -> None:
+        t0 = time.perf_counter()
+        m = self.map
+        c = self.config
+        with m.lock:
+            m.add_keyframe(kf)
+            for i, pid in enumerate(kf.point_ids.tolist()):  # freshest appearance for matching
+                if pid >= 0:
+                    m.points[pid].desc = kf.desc[i]
+            ids = m.kf_ids()
+        self._triangulate(kf, ids)
+        self._cull(kf, ids)
+        self._local_ba(kf, ids)
+        self._publish(ids, kf)
+        self.stats.local_mapping_ms.append((time.perf_counter() - t0) * 1e3)
+        if c.loop_closing != "off":
+            self._loop(kf)
+        self._forget_old(ids)
+
+    # --- local mapping --------------------------------------------------------------------------
+    def _triangulate(self, kf: Keyframe, ids: list[int]) -> None:
+        """New points from the new keyframe's unmatched features and those of its 2 predecessors."""
+        m = self.map
+        for other_id in ids[-3:-1]:
+            other = m.keyframes[other_id]
+            a = np.flatnonzero(kf.point_ids < 0)
+            b = np.flatnonzero(other.point_ids < 0)
+            pairs = match_bf(kf.desc[a], other.desc[b], ratio=0.7, max_dist=60)
+            if len(pairs) == 0:
+                continue
+            ia, ib = a[pairs[:, 0]], b[pairs[:, 1]]
+            p, good = triangulate(self.K, kf.T_cam_slam, other.T_cam_slam, kf.uv_px[ia], other.uv_px[ib],
+                                  max_reproj_px=2.0, min_parallax_deg=1.0)
+            with m.lock:
+                for k in np.flatnonzero(good):
+                    i, j = int(ia[k]), int(ib[k])
+                    if kf.point_ids[i] < 0 and other.point_ids[j] < 0:
+                        m.add_point(p[k], kf.desc[i], {kf.kf_id: i, other.kf_id: j})
+
+    def _cull(self, kf: Keyframe, ids: list[int]) -> None:
+        """Drop points created >= 3 keyframes ago that are seen by fewer than 3 keyframes (ORB-SLAM)."""
+        if len(ids) < 4:
+            return
+        old = ids[-4]
+        m = self.map
+        with m.lock:
+            for pid in [p.point_id for p in m.points.values() if p.first_kf == old and len(p.obs) < 3]:
+                m.remove_point(pid)
+
+    def _local_ba(self, kf: Keyframe, ids: list[int]) -> None:
+        c = self.config
+        w = c.local_window
+        prev = [self.map.keyframes[i].center for i in ids[:-1][-w:]]
+        win = plm_window(np.array(prev), kf.center, w) if c.progressive_local_mapping and len(prev) >= 2 else w
+        self.stats.ba_window.append(win)
+        res = self._run_ba(ids[-win:], max_fixed=w)
+        if res is not None:
+            self.stats.local_ba_ms.append(res.solve_ms)
+
+    def _run_ba(self, kf_ids: list[int], max_fixed: int) -> BAResult | None:
+        """Build the BA problem for these keyframes (+ fixed neighbours), solve in the worker process,
+        write back and drop bad observations."""
+        m = self.map
+        c = self.config
+        with m.lock:
+            kf_ids = [k for k in kf_ids if k in m.keyframes]
+            pids = sorted({int(p) for k in kf_ids for p in m.keyframes[k].point_ids if p >= 0})
+            pids = [p for p in pids if p in m.points]
+            if len(pids) < 10:
+                return None
+            win = set(kf_ids)
+            fixed_ids = sorted({k for p in pids for k in m.points[p].obs if k not in win and k in m.keyframes})
+            fixed_ids = fixed_ids[-max_fixed:]
+            all_ids = fixed_ids + kf_ids
+            fixed = np.array([k in fixed_ids for k in all_ids])
+            if fixed.sum() < 2:  # gauge: monocular BA needs >= 2 held poses (7 DoF)
+                fixed[: 2] = True
+            pose_idx = {k: i for i, k in enumerate(all_ids)}
+            pt_idx = {p: j for j, p in enumerate(pids)}
+            o_pose, o_pt, o_uv = [], [], []
+            for p in pids:
+                for k, f in m.points[p].obs.items():
+                    if k in pose_idx:
+                        o_pose.append(pose_idx[k])
+                        o_pt.append(pt_idx[p])
+                        o_uv.append(m.keyframes[k].uv_px[f])
+            prob = BAProblem(self.K, np.array([m.keyframes[k].T_cam_slam for k in all_ids]), fixed,
+                             np.array([m.points[p].p_slam for p in pids]), np.array(o_pose), np.array(o_pt),
+                             np.array(o_uv), max_iterations=c.ba_iterations)
+        try:
+            res: BAResult = self._ba.submit(prob).result()
+        except Exception:
+            log.exception("bundle adjustment failed")
+            return None
+        with m.lock:
+            if m is not self.map:
+                return None
+            for k, T in zip(all_ids, res.T_cam_slam):
+                if k in m.keyframes and not fixed[pose_idx[k]]:
+                    m.keyframes[k].T_cam_slam = T
+            for p, X in zip(pids, res.points_slam):
+                if p in m.points:
+                    m.points[p].p_slam = X
+            bad = np.flatnonzero(~(res.residual_px < c.max_reproj_px))
+            for b in bad:
+                m.remove_observation(pids[o_pt[b]], all_ids[o_pose[b]])
+        self._changed = pids
+        return res
+
+    def _publish(self, ids: list[int], kf: Keyframe) -> None:
+        m = self.map
+        c = self.config
+        with m.lock:
+            self._lm_version += 1
+            self.shared.local_map = m.local_map(ids[-c.local_map_keyframes:], self._lm_version)
+            upd_ids = [p for p in getattr(self, "_changed", []) if p in m.points]
+            upd_ids += [int(p) for p in kf.point_ids if p >= 0 and p in m.points]
+            upd_ids = sorted(set(upd_ids))
+            win = ids[-c.local_window:]
+            self.updates.put(MapUpdate(
+                t_s=kf.t_s,
+                points_slam=np.array([m.points[p].p_slam for p in upd_ids]).reshape(-1, 3),
+                point_ids=np.array(upd_ids, np.int64),
+                n_obs=np.array([len(m.points[p].obs) for p in upd_ids], np.int32),
+                keyframe_t_s=np.array([m.keyframes[k].t_s for k in win]),
+                keyframe_centers_slam=np.array([m.keyframes[k].center for k in win]).reshape(-1, 3),
+                reset_counter=self.reset_counter, full=False, map_id=self.reset_counter))
+        self._changed = []
+
+    def _forget_old(self, ids: list[int]) -> None:
+        """Memory cap: beyond max_keyframes, the oldest keyframes lose their descriptors and the
+        points only they observe are removed (their poses stay for the trajectory)."""
+        extra = len(ids) - self.config.max_keyframes
+        if extra <= 0:
+            return
+        m = self.map
+        with m.lock:
+            for k in ids[:extra]:
+                kf = m.keyframes[k]
+                if len(kf.desc) == 0:
+                    continue
+                for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+                    mp = m.points.get(pid)
+                    if mp is not None:
+                        mp.obs.pop(k, None)
+                        if len(mp.obs) == 0:
+                            m.points.pop(pid)
+                kf.uv_px = kf.uv_px[:0]
+                kf.desc = kf.desc[:0]
+                kf.point_ids = kf.point_ids[:0]
+
+    # --- loop closing ---------------------------------------------------------------------------
+    def _loop(self, kf: Keyframe) -> None:
+        c = self.config
+        cands = self._place.query(kf.desc, exclude_after_kf_id=kf.kf_id - c.loop_min_gap_keyframes)
+        self._place.add(kf.kf_id, kf.desc)
+        for cand in cands[:2]:
+            if cand.votes < c.loop_min_votes:
+                break
+            S = self._verify(kf, cand.kf_id)
+            if S is not None:
+                self._correct(kf, cand.kf_id, S)
+                return
+
+    def _verify(self, kf: Keyframe, old_id: int):
+        """Sim(3) between the current keyframe's points and the candidate's (3D-3D RANSAC)."""
+        m = self.map
+        with m.lock:
+            old = m.keyframes.get(old_id)
+            if old is None or len(old.desc) == 0:
+                return None
+            a = np.flatnonzero(kf.point_ids >= 0)
+            b = np.flatnonzero(old.point_ids >= 0)
+            a = a[[int(kf.point_ids[i]) in m.points for i in a]]
+            b = b[[int(old.point_ids[i]) in m.points for i in b]]
+            pairs = match_bf(kf.desc[a], old.desc[b], ratio=0.8, max_dist=64)
+            if len(pairs) < self.config.loop_min_inliers:
+                return None
+            pa = [int(kf.point_ids[a[i]]) for i in pairs[:, 0]]
+            pb = [int(old.point_ids[b[j]]) for j in pairs[:, 1]]
+            src = np.array([m.points[p].p_slam for p in pa])
+            dst = np.array([m.points[p].p_slam for p in pb])
+            depth = np.median(np.linalg.norm(src - kf.center, axis=1))
+        S, inl = ransac_sim3(src, dst, thresh=0.03 * depth)
+        if S is None or inl.sum() < self.config.loop_min_inliers:
+            return None
+        self._loop_pairs = [(pa[i], pb[i]) for i in np.flatnonzero(inl)]
+        return S
+
+    def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> None:
+        """Move the current window by S, fuse the matched points, then BA: Algorithm 1 (recursive)
+        or the whole loop at once (full) — same starting state, so the two are comparable."""
+        c = self.config
+        w = c.local_window
+        m = self.map
+        t0 = time.perf_counter()
+        with m.lock:
+            ids = m.kf_ids()
+            start, cur = ids.index(old_id), ids.index(kf.kf_id)
+            window = set(ids[max(cur - w, start):cur + 1])
+            moved: set[int] = set()
+            for k in window:
+                kfk = m.keyframes[k]
+                kfk.T_cam_slam = correct_pose_by_sim3(kfk.T_cam_slam, S)
+                for pid in kfk.point_ids[kfk.point_ids >= 0].tolist():
+                    if pid not in moved and pid in m.points and set(m.points[pid].obs) <= window:
+                        moved.add(pid)
+                        p = m.points[pid]
+                        p.p_slam = S[:3, :3] @ p.p_slam + S[:3, 3]
+            for new_pid, old_pid in self._loop_pairs:
+                m.replace_point(new_pid, old_pid)
+        self._correction_gen += 1
+        self.shared.correction = (self._correction_gen, S)
+
+        def ba(idx: list[int]) -> None:
+            self._run_ba([ids[i] for i in idx], max_fixed=w)
+
+        def centers():
+            with m.lock:
+                return [m.keyframes[k].center for k in ids]
+
+        if c.loop_closing == "recursive":
+            recursive_loop_closing(start, cur, w, ba, centers)
+        else:
+            ba(list(range(start, cur + 1)))
+        self.stats.loop_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats.loops.append((old_id, kf.kf_id))
+        self._publish_full()
+
+    def _publish_full(self) -> None:
+        m = self.map
+        with m.lock:
+            ids = m.kf_ids()
+            self._lm_version += 1
+            self.shared.local_map = m.local_map(ids[-self.config.local_map_keyframes:], self._lm_version)
+            self.updates.put(self._snapshot(full=True))
+
+    def _snapshot(self, full: bool) -> MapUpdate:
+        m = self.map
+        with m.lock:
+            pids = sorted(m.points)
+            ids = m.kf_ids()[-self.config.local_window:]
+            return MapUpdate(
+                t_s=m.keyframes[ids[-1]].t_s if ids else 0.0,
+                points_slam=np.array([m.points[p].p_slam for p in pids]).reshape(-1, 3),
+                point_ids=np.array(pids, np.int64),
+                n_obs=np.array([len(m.points[p].obs) for p in pids], np.int32),
+                keyframe_t_s=np.array([m.keyframes[k].t_s for k in ids]),
+                keyframe_centers_slam=np.array([m.keyframes[k].center for k in ids]).reshape(-1, 3),
+                reset_counter=self.reset_counter, full=full, map_id=self.reset_counter)

@@ -1,0 +1,55 @@
+"""Place recognition without anything downloaded: an incremental binary-descriptor index.
+
+Each keyframe contributes a spread subset of its ORB descriptors to an OpenCV brute-force Hamming
+matcher (compiled, appended incrementally with ``add``); a query votes with its ratio-test-passing
+nearest neighbours for the keyframes they came from. No vocabulary to train or ship; cost grows
+linearly with the number of keyframes (documented; fine for the flights we target).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PlaceCandidate:
+    kf_id: int
+    votes: int
+
+
+class PlaceIndex:
+    def __init__(self, per_keyframe: int = 150, ratio: float = 0.8, max_dist: int = 64) -> None:
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._kf_ids: list[int] = []
+        self.per_keyframe = per_keyframe
+        self.ratio = ratio
+        self.max_dist = max_dist
+
+    def __len__(self) -> int:
+        return len(self._kf_ids)
+
+    def _subset(self, desc: np.ndarray) -> np.ndarray:
+        if len(desc) <= self.per_keyframe:
+            return desc
+        return desc[np.linspace(0, len(desc) - 1, self.per_keyframe).astype(int)]
+
+    def add(self, kf_id: int, desc: np.ndarray) -> None:
+        self._matcher.add([np.ascontiguousarray(self._subset(desc))])
+        self._kf_ids.append(kf_id)
+
+    def query(self, desc: np.ndarray, exclude_after_kf_id: int | None = None, top: int = 3) -> list[PlaceCandidate]:
+        """Keyframes with the most votes, best first; keyframes with id > exclude_after_kf_id are skipped."""
+        if len(self._kf_ids) == 0 or len(desc) < 2:
+            return []
+        knn = self._matcher.knnMatch(np.ascontiguousarray(self._subset(desc)), k=2)
+        votes = np.zeros(len(self._kf_ids), int)
+        for pair in knn:
+            if len(pair) == 2 and pair[0].distance < self.max_dist and pair[0].distance < self.ratio * pair[1].distance:
+                votes[pair[0].imgIdx] += 1
+        ids = np.array(self._kf_ids)
+        if exclude_after_kf_id is not None:
+            votes[ids > exclude_after_kf_id] = 0
+        order = np.argsort(-votes)[:top]
+        return [PlaceCandidate(int(ids[i]), int(votes[i])) for i in order if votes[i] > 0]

@@ -1,0 +1,272 @@
+"""Tracking thread: features, motion-model prediction, matching against the local map, PnP +
+pose-only refinement, keyframe decisions and the tracking state machine (issue 4 §1)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam.config import SlamConfig
+from slam.features import Features
+from slam.geometry import T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
+from slam.map import Keyframe, LocalMap, SlamMap
+from slam.matching import TH_LOW, match_bf, match_by_projection
+from slam.types import Frame, TrackingState
+
+
+@dataclass
+class PoseEstimate:
+    T_cam_slam: np.ndarray
+    inlier_feat: np.ndarray  # feature indices
+    inlier_pid: np.ndarray  # their map point ids
+
+
+def solve_pnp(K: np.ndarray, p_slam: np.ndarray, uv_px: np.ndarray, T_guess: np.ndarray | None,
+              reproj_px: float, min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """RANSAC PnP (OpenCV, EPnP minimal sets) then pose-only Levenberg-Marquardt refinement on the
+    inliers, re-gated once (motion-only BA). Returns (T_cam_slam, inlier mask) or None."""
+    if len(p_slam) < max(6, min_inliers):
+        return None
+    obj = np.ascontiguousarray(p_slam, np.float64)
+    img = np.ascontiguousarray(uv_px, np.float64)
+    if T_guess is not None:
+        rvec, tvec = rvec_from_T(T_guess)
+        uv, z = project(K, T_guess, obj)
+        err = np.linalg.norm(uv - img, axis=1)
+        inl = (z > 0) & (err < 2 * reproj_px)
+        ok = inl.sum() >= min_inliers
+    else:
+        ok = False
+    if not ok:
+        ok, rvec, tvec, idx = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=100,
+                                                 reprojectionError=reproj_px, confidence=0.99,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        if not ok or idx is None or len(idx) < min_inliers:
+            return None
+        inl = np.zeros(len(obj), bool)
+        inl[idx.ravel()] = True
+    for gate in (2 * reproj_px, reproj_px):
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+        T = T_from_rvec(rvec, tvec)
+        uv, z = project(K, T, obj)
+        inl = (z > 0) & (np.linalg.norm(uv - img, axis=1) < gate)
+        if inl.sum() < min_inliers:
+            return None
+    return T, inl
+
+
+@dataclass
+class Shared:
+    """State the background threads publish to the tracker by reference swap (no locks needed)."""
+
+    local_map: LocalMap | None = None
+    correction: tuple[int, np.ndarray] = (0, np.eye(4))  # (generation, S_new_old) from loop closing
+    mapping_busy: bool = False
+
+
+@dataclass
+class TrackResult:
+    state: TrackingState
+    T_cam_slam: np.ndarray
+    n_inliers: int
+    new_keyframe: Keyframe | None = None
+    reset_map: SlamMap | None = None
+
+
+@dataclass
+class _Init:
+    frame: Frame
+    feats: Features
+
+
+@dataclass
+class Tracker:
+    K: np.ndarray
+    width_px: int
+    height_px: int
+    config: SlamConfig
+    extract: Callable[[np.ndarray], Features]
+    map: SlamMap = field(default_factory=SlamMap)
+    shared: Shared = field(default_factory=Shared)
+    state: TrackingState = TrackingState.INITIALIZING
+    T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_vel: np.ndarray = field(default_factory=lambda: np.eye(4))  # T_cur_prev of the last step
+    frames_since_kf: int = 0
+    ref_kf_points: int = 0
+    lost_frames: int = 0
+    _init: _Init | None = None
+    _correction_gen: int = 0
+    _reloc_map: LocalMap | None = None
+    _reloc_age: int = 0
+
+    # --- public ---------------------------------------------------------------------------------
+    def track(self, frame: Frame) -> TrackResult:
+        feats = self.extract(frame.image)
+        if self.state == TrackingState.INITIALIZING:
+            return self._initialize(frame, feats)
+        self._apply_correction()
+        if self.state == TrackingState.LOST:
+            return self._relocalize(frame, feats)
+        est = self._track_local_map(feats, self.T_vel @ self.T_last)
+        if est is None:
+            self.state = TrackingState.LOST
+            self.lost_frames = 1
+            return TrackResult(TrackingState.LOST, self.T_last, 0)
+        return self._accept(frame, feats, est, TrackingState.OK)
+
+    # --- steps ----------------------------------------------------------------------------------
+    def _accept(self, frame: Frame, feats: Features, est: PoseEstimate, state: TrackingState) -> TrackResult:
+        self.T_vel = est.T_cam_slam @ inv_T(self.T_last) if self.state == TrackingState.OK else np.eye(4)
+        self.T_last = est.T_cam_slam
+        self.state = state
+        self.lost_frames = 0
+        self.frames_since_kf += 1
+        kf = None
+        n = len(est.inlier_pid)
+        c = self.config
+        need = (self.frames_since_kf >= c.max_frames_between_keyframes
+                or (n < c.keyframe_inlier_ratio * self.ref_kf_points and self.frames_since_kf >= c.min_frames_between_keyframes
+                    and not self.shared.mapping_busy)
+                or (n < 2 * c.min_inliers and self.frames_since_kf >= 1))
+        if need:
+            pids = np.full(len(feats), -1, np.int64)
+            pids[est.inlier_feat] = est.inlier_pid
+            kf = Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, est.T_cam_slam.copy(), feats.uv_px, feats.desc, pids)
+            self.frames_since_kf = 0
+            self.ref_kf_points = n
+            self.shared.mapping_busy = True
+        return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)
+
+    def _track_local_map(self, feats: Features, T_pred: np.ndarray) -> PoseEstimate | None:
+        lm = self.shared.local_map
+        if lm is None or len(lm.point_ids) == 0 or len(feats) < self.config.min_inliers:
+            return None
+        tree = cKDTree(feats.uv_px)
+        for radius in (self.config.search_radius_px, 3 * self.config.search_radius_px):
+            est = self._match_and_solve(feats, lm, T_pred, radius, tree)
+            if est is not None:
+                return est
+        return None
+
+    def _visible(self, lm: LocalMap, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        uv, z = project(self.K, T, lm.p_slam)
+        vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width_px) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height_px)
+        idx = np.flatnonzero(vis)
+        return idx, uv[idx]
+
+    def _match_and_solve(self, feats: Features, lm: LocalMap, T_pred: np.ndarray, radius: float,
+                         tree: cKDTree) -> PoseEstimate | None:
+        c = self.config
+        idx, uv = self._visible(lm, T_pred)
+        pairs = match_by_projection(uv, lm.desc[idx], feats.uv_px, feats.desc, radius, tree=tree)
+        if len(pairs) < c.min_inliers:
+            return None
+        pts = idx[pairs[:, 0]]
+        sol = solve_pnp(self.K, lm.p_slam[pts], feats.uv_px[pairs[:, 1]], T_pred, c.pnp_reproj_px, c.min_inliers)
+        if sol is None:
+            return None
+        T, inl = sol
+        # second pass (ORB-SLAM TrackLocalMap): re-project with the refined pose, tight radius
+        idx, uv = self._visible(lm, T)
+        pairs = match_by_projection(uv, lm.desc[idx], feats.uv_px, feats.desc, c.refine_radius_px, tree=tree)
+        if len(pairs) >= c.min_inliers:
+            pts2 = idx[pairs[:, 0]]
+            sol2 = solve_pnp(self.K, lm.p_slam[pts2], feats.uv_px[pairs[:, 1]], T, c.pnp_reproj_px, c.min_inliers)
+            if sol2 is not None and sol2[1].sum() >= inl.sum():
+                T, inl = sol2
+                pts, pairs = pts2, pairs
+        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]])
+
+    def _apply_correction(self) -> None:
+        gen, S = self.shared.correction
+        if gen != self._correction_gen:
+            from slam.geometry import correct_pose_by_sim3
+
+            self._correction_gen = gen
+            self.T_last = correct_pose_by_sim3(self.T_last, S)
+            self.T_vel = np.eye(4)
+
+    def _relocalize(self, frame: Frame, feats: Features) -> TrackResult:
+        """Match against the points of the recent keyframes (brute force, no pose prior) + PnP."""
+        self.lost_frames += 1
+        c = self.config
+        if self.lost_frames > c.reset_after_lost_frames:
+            return self._reset(frame, feats)
+        if self._reloc_map is None or self._reloc_age >= 15:
+            with self.map.lock:
+                ids = self.map.kf_ids()[-c.reloc_keyframes:]
+                self._reloc_map = self.map.local_map(ids, -1)
+            self._reloc_age = 0
+        self._reloc_age += 1
+        lm = self._reloc_map
+        if len(feats) >= c.min_inliers and len(lm.point_ids) >= c.min_inliers:
+            pairs = match_bf(feats.desc, lm.desc, ratio=0.8, max_dist=TH_LOW + 14)
+            if len(pairs) >= c.min_inliers:
+                sol = solve_pnp(self.K, lm.p_slam[pairs[:, 1]], feats.uv_px[pairs[:, 0]], None,
+                                c.pnp_reproj_px, c.reloc_min_inliers)
+                if sol is not None:
+                    # confirm with a projection-guided pass on the local map around the found pose
+                    est = self._track_local_map(feats, sol[0])
+                    if est is not None and len(est.inlier_pid) >= c.reloc_min_inliers:
+                        self._reloc_map = None
+                        self.T_vel = np.eye(4)
+                        self.frames_since_kf = c.max_frames_between_keyframes  # key the first good frame
+                        return self._accept(frame, feats, est, TrackingState.RELOCALIZED)
+        return TrackResult(TrackingState.LOST, self.T_last, 0)
+
+    def _reset(self, frame: Frame, feats: Features) -> TrackResult:
+        self.map = SlamMap()
+        self.shared.local_map = None
+        self.state = TrackingState.INITIALIZING
+        self._init = None
+        self._reloc_map = None
+        self.lost_frames = 0
+        res = self._initialize(frame, feats)
+        return TrackResult(res.state, res.T_cam_slam, res.n_inliers, reset_map=self.map)
+
+    def _initialize(self, frame: Frame, feats: Features) -> TrackResult:
+        """Two-view monocular initialization once the reference frame has enough parallax."""
+        c = self.config
+        if self._init is None or len(self._init.feats) < c.init_min_matches:
+            self._init = _Init(frame, feats)
+            return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
+        ref = self._init.feats
+        pairs = match_bf(ref.desc, feats.desc, ratio=0.75, max_dist=TH_LOW + 14)
+        if len(pairs) < c.init_min_matches:
+            self._init = _Init(frame, feats)  # too much changed: restart from this frame
+            return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
+        uv1, uv2 = ref.uv_px[pairs[:, 0]], feats.uv_px[pairs[:, 1]]
+        if np.median(np.linalg.norm(uv2 - uv1, axis=1)) < c.init_min_flow_px:
+            return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
+        init = initialize_two_view(self.K, uv1, uv2, min_points=c.init_min_matches // 2)
+        if init is None:
+            return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
+        # scale: median scene depth of the first view = 1 (ORB-SLAM convention)
+        s = 1.0 / np.median(init.points_cam1[init.good, 2])
+        T2 = init.T_cam2_cam1.copy()
+        T2[:3, 3] *= s
+        pts = init.points_cam1[init.good] * s
+        good = np.flatnonzero(init.good)
+        m = self.map
+        with m.lock:
+            kf1 = Keyframe(m.new_kf_id(), self._init.frame.t_s, self._init.frame.seq, np.eye(4), ref.uv_px, ref.desc,
+                           np.full(len(ref), -1, np.int64))
+            kf2 = Keyframe(m.new_kf_id(), frame.t_s, frame.seq, T2, feats.uv_px, feats.desc, np.full(len(feats), -1, np.int64))
+            m.add_keyframe(kf1)
+            m.add_keyframe(kf2)
+            for p, i1, i2 in zip(pts, pairs[good, 0], pairs[good, 1]):
+                m.add_point(p, feats.desc[i2], {kf1.kf_id: int(i1), kf2.kf_id: int(i2)})
+            self.shared.local_map = m.local_map([kf1.kf_id, kf2.kf_id], 0)
+        self._init = None
+        self.T_last = T2
+        self.T_vel = np.eye(4)
+        self.state = TrackingState.OK
+        self.frames_since_kf = 0
+        self.ref_kf_points = len(pts)
+        self.shared.mapping_busy = True
+        # kf2 goes to local mapping for its first BA (kf1 is already in the map)
+        return TrackResult(TrackingState.OK, T2, len(pts), new_keyframe=kf2)
