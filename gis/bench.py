@@ -128,7 +128,7 @@ def replay_flight(model: GisModel, T_enu_cam: np.ndarray, observe: Observe, T_bo
     cfg = config or AlignmentConfig()
     rng = np.random.default_rng(seed)
     tuner = FineTuner(model, cfg)
-    glob = Globalizer(T_body_cam, cfg.slam_drift_fraction, cfg.sigma_floor_m)
+    glob = Globalizer(T_body_cam, cfg.slam_drift_fraction, cfg.sigma_floor_m, cfg.model_sigma_m)
     T_slam_enu = T_ENU_SLAM.inverse()
     alignment = _initial(model, T_enu_cam[0, :3, 3])
     walk = np.zeros(3)

@@ -3,7 +3,8 @@
 The covariance is propagated, not guessed: the alignment's information (Eq. 8–10, about its
 centre) is inverted and carried to the vehicle with the lever arm d from that centre
 (J = [−[d]×, I]), plus the scale uncertainty (scale_sigma·|d|), SLAM drift away from the
-alignment's centre (slam_drift_fraction·|d|) and a floor. No fix when tracking has no pose, no
+alignment's centre (slam_drift_fraction·|d|), the GIS model's georeference accuracy
+(model_sigma_m, for GIS-based alignments) and a floor. No fix when tracking has no pose, no
 alignment was accepted, or the alignment belongs to another SLAM map (reset_counter / map_id).
 """
 from __future__ import annotations
@@ -14,16 +15,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gis.geodesy import R_NED_ENU, LocalFrame, ecef_to_geodetic, ellipsoid_to_msl
-from gis.types import Alignment, GlobalFix
+from gis.types import Alignment, AlignmentSource, GlobalFix
 from slam.types import SlamPose
 
 
 class Globalizer:
     def __init__(self, T_body_cam: np.ndarray, slam_drift_fraction: float = 0.01, sigma_floor_m: float = 0.05,
-                 max_velocity_dt_s: float = 1.0) -> None:
+                 model_sigma_m: float = 0.25, max_velocity_dt_s: float = 1.0) -> None:
         self.T_cam_body = np.linalg.inv(np.asarray(T_body_cam, float))
         self.slam_drift_fraction = slam_drift_fraction
         self.sigma_floor_m = sigma_floor_m
+        self.model_sigma_m = model_sigma_m
         self.max_velocity_dt_s = max_velocity_dt_s
         self._lock = threading.Lock()
         self._alignment: Alignment | None = None
@@ -81,6 +83,8 @@ class Globalizer:
         else:
             cov_enu = J @ cov6 @ J.T
         iso = (a.scale_sigma * dist) ** 2 + (self.slam_drift_fraction * dist) ** 2 + self.sigma_floor_m**2
+        if a.source is not AlignmentSource.GNSS:  # GIS-based: the model's own georeference error
+            iso += self.model_sigma_m**2
         R = R_ned_ecef @ R_ecef_enuC
         return R @ (cov_enu + iso * np.eye(3)) @ R.T
 
