@@ -82,27 +82,75 @@ def _rig(autopilot: str, output: str, rate_hz: float, sw: SwitchingConfig | None
     return sim, Bridge(cfg, sw or SwitchingConfig()).start()
 
 
-def run_rates(autopilot: str, output: str, rate_hz: float, seconds: float = 3.0, frame_hz: float = 30.0) -> RateResult:
-    sim, bridge = _rig(autopilot, output, rate_hz)
-    flight, t0 = Flight(), time.monotonic()
+def _sim_process(personality: str, params: dict, t0: float, cmd_q, out_q) -> None:
+    """Simulated autopilot + 5 Hz receiver in its own process, so its threads do not compete with
+    the bridge for the GIL (a real autopilot is another machine). Answers "count" with its accepted
+    counts until "stop"."""
+    import queue
+
+    sim = SimAutopilot(personality, ekf_start_s=0.2, params=params).start()
+    out_q.put(sim.port)
+    flight = Flight()
     try:
-        _pump(sim, bridge, flight, t0, 1.0, frame_hz)  # link up, EKF origin known
-        sent0, acc0 = bridge.stats().sent[MSG[output]], sim.received().accepted[MSG[output]]
-        n_lat0 = len(bridge.stats().fix_to_wire_s)
-        t1 = time.monotonic()
-        _pump(sim, bridge, flight, t0, seconds, frame_hz)
-        time.sleep(0.05)
+        while True:
+            now = time.monotonic()  # CLOCK_MONOTONIC: shared with the parent process
+            sim.feed_gnss(flight.gnss(now, now - t0))
+            try:
+                cmd = cmd_q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            out_q.put(dict(sim.received().accepted))
+            if cmd == "stop":
+                return
+    finally:
+        sim.close()
+
+
+def run_rates(autopilot: str, output: str, rate_hz: float, seconds: float = 3.0, frame_hz: float = 30.0) -> RateResult:
+    """Fixes submitted at ``frame_hz`` for ``seconds``; rates sent / accepted and fix-to-wire latency
+    (submit_fix entry → datagram written) of the bridge, with the autopilot in another process."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    cmd_q, out_q = ctx.Queue(), ctx.Queue()
+    t0 = time.monotonic()
+    params = {"GPS_AUTO_SWITCH": 0} if autopilot == "ardupilot" else {}
+    proc = ctx.Process(target=_sim_process, args=(autopilot, params, t0, cmd_q, out_q), daemon=True)
+    proc.start()
+    bridge = None
+    try:
+        port = out_q.get(timeout=30)
+        cfg = MavlinkConfig(connect=f"udpout:127.0.0.1:{port}", autopilot=autopilot, output=output, rate_hz=rate_hz)
+        bridge = Bridge(cfg, SwitchingConfig()).start()
+        flight, dt = Flight(), 1.0 / frame_hz
+
+        def frames(duration):
+            end = time.monotonic() + duration
+            while time.monotonic() < end:
+                now = time.monotonic()
+                bridge.submit_fix(flight.fix(now, now - t0))
+                time.sleep(max(0.0, dt - (time.monotonic() - now)))
+        frames(1.5)  # link up, EKF origin known
+        cmd_q.put("count")
+        acc0 = out_q.get(timeout=10).get(MSG[output], 0)
+        sent0, n_lat0, t1 = bridge.stats().sent[MSG[output]], len(bridge.stats().fix_to_wire_s), time.monotonic()
+        frames(seconds)
         span = time.monotonic() - t1
+        time.sleep(0.05)
+        cmd_q.put("stop")
+        acc1 = out_q.get(timeout=10).get(MSG[output], 0)
         st = bridge.stats()
         lat_ms = np.asarray(st.fix_to_wire_s[n_lat0:]) * 1e3
         return RateResult(
-            autopilot, output, rate_hz, (st.sent[MSG[output]] - sent0) / span,
-            (sim.received().accepted[MSG[output]] - acc0) / span,
+            autopilot, output, rate_hz, (st.sent[MSG[output]] - sent0) / span, (acc1 - acc0) / span,
             float(np.percentile(lat_ms, 50)), float(np.percentile(lat_ms, 99)), float(lat_ms.max()), len(lat_ms),
         )
     finally:
-        bridge.close()
-        sim.close()
+        if bridge is not None:
+            bridge.close()
+        proc.join(timeout=5)
+        if proc.is_alive():
+            proc.terminate()
 
 
 def run_detection(autopilot: str, event: str) -> DetectionResult:
@@ -125,7 +173,7 @@ def run_detection(autopilot: str, event: str) -> DetectionResult:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=3.0, help="measurement time per setup")
+    ap.add_argument("--seconds", type=float, default=10.0, help="measurement time per setup")
     ap.add_argument("--frame-hz", type=float, default=30.0, help="rate of submit_fix calls (camera frames)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)  # switch events are the measurement here, not log lines

@@ -124,10 +124,9 @@ class Bridge:
     def submit_fix(self, fix: GlobalFix | None) -> None:
         """Our latest global fix (None = tracking lost: output stops at once)."""
         t0 = self.clock()
-        with self._lock:
-            self.monitor.on_fix(fix)
-            state = self.policy.state
-            origin, q = self._origin, self._q_ned_body
+        # Lock-free on purpose (latency): each of these is a single reference read/write, atomic in CPython.
+        self.monitor.on_fix(fix)
+        state, origin, q = self.policy.state, self._origin, self._q_ned_body
         if fix is None or t0 - fix.t_s > self.cfg.max_fix_age_s:
             self._stop_output("tracking lost" if fix is None else f"fix {t0 - fix.t_s:.2f} s old")
             return

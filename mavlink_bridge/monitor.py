@@ -36,6 +36,7 @@ def sample_from_gps_raw(msg, t_s: float) -> GnssSample:
 
     MAVLink sentinels: eph/epv UINT16_MAX = unknown (PX4 also reports 10000 on loss),
     alt_ellipsoid 0 = not sent, h_acc/v_acc 0 = not sent (mm), vel UINT16_MAX, cog UINT16_MAX.
+    Velocity is ground speed along the course: (vn, ve, NaN) — GPS_RAW_INT carries no vertical speed.
     """
     fix = GpsFixType(min(int(msg.fix_type), int(GpsFixType.RTK_FIXED)))
     eph = math.nan if msg.eph in (65535, 10000) else msg.eph / 100.0

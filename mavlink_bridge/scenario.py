@@ -2,6 +2,7 @@
 the tests and demos that need the bridge without the full pipeline. Heights: ``h_msl_m`` EGM96."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ class Flight:
     h0_msl_m: float = 520.0
     v_ned_mps: tuple[float, float, float] = (5.0, 0.0, 0.0)
 
-    @property
+    @functools.cached_property
     def frame(self) -> LocalFrame:
         return LocalFrame(self.lat0_deg, self.lon0_deg, float(msl_to_ellipsoid(self.lat0_deg, self.lon0_deg, self.h0_msl_m)))
 
