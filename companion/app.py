@@ -144,9 +144,9 @@ def write_outputs(run: RunLog, summary: dict, out_dir: Path, origin, title: str)
 @dataclass(frozen=True)
 class DemoOptions:
     seed: int = 0
-    n_frames: int = 900
-    fps: float = 15.0
-    gnss_loss_at_s: float = 25.0
+    n_frames: int = 800
+    fps: float = 10.0
+    gnss_loss_at_s: float = 40.0
     autopilot: str = "ardupilot"
     scenario: str = "gnss_loss"
 

@@ -67,10 +67,10 @@ def _print_summary(summary: dict, out: Path) -> None:
 @app.command("demo")
 def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="output folder for report, trajectory and plots"),
-    frames: int = typer.Option(900, "--frames", min=60, help="camera frames to simulate (15 fps)"),
+    frames: int = typer.Option(800, "--frames", min=60, help="camera frames to simulate (10 fps)"),
     autopilot: str = typer.Option("ardupilot", "--autopilot", help="simulated autopilot personality: ardupilot | px4"),
     seed: int = typer.Option(0, "--seed"),
-    loss_at: float = typer.Option(25.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
+    loss_at: float = typer.Option(40.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""

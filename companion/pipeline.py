@@ -177,6 +177,8 @@ class Localizer:
         self.events: list[tuple[float, str]] = []  # (t_s, text): alignment timeline
         self._lock = threading.Lock()
         self._frames_since_tune = 0
+        self._frames_since_boot = 0
+        self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is the only alignment
         self._last_pose: SlamPose | None = None
         self.worker = FineTuneWorker(tuner, self._on_finetune) if tuner is not None else None
         if initial_alignment is not None:
@@ -212,12 +214,15 @@ class Localizer:
                 self.alignment = alignment = None
         if pose.state.has_pose:
             self.bootstrap.add(pose, item.gnss, item.gnss_trusted)
-            if alignment is None or alignment.source is AlignmentSource.GNSS:
-                if self.bootstrap.ready() and (alignment is None or self._frames_since_tune == 0):
-                    boot = self.bootstrap.solve()
-                    if boot is not None:
-                        self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
-                        alignment = boot
+            self._frames_since_boot += 1
+            gnss_sourced = alignment is None or alignment.source is AlignmentSource.GNSS
+            if (item.gnss_trusted and gnss_sourced and self.bootstrap.ready()
+                    and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
+                self._frames_since_boot = 0
+                boot = self.bootstrap.solve()
+                if boot is not None:
+                    self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
+                    alignment = boot
             self._frames_since_tune += 1
             if alignment is not None and self.worker is not None and self._frames_since_tune >= self.every:
                 snapshot = self.slam.map_points()
