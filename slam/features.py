@@ -57,8 +57,13 @@ def undistort_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
 
 
 def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray], Features]:
-    """OpenCV ORB (8 levels, x1.2) over-detecting 2x, then spread over a 16x16 grid."""
-    orb = cv2.ORB_create(nfeatures=2 * n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+    """OpenCV ORB (8 levels, x1.2) over-detecting 1.5x, then spread over a 16x16 grid.
+
+    Harris ranking kept: FAST score saved ~1.5 ms/frame but doubled-to-tenfold the trajectory
+    error on the nominal sequence in our runs.
+    """
+    orb = cv2.ORB_create(nfeatures=int(1.5 * n_features), scaleFactor=1.2, nlevels=8, fastThreshold=20,
+                         scoreType=cv2.ORB_HARRIS_SCORE)
 
     def extract(image: np.ndarray) -> Features:
         gray = to_gray(image)

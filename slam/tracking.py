@@ -172,13 +172,13 @@ class Tracker:
         T, inl = sol
         # second pass (ORB-SLAM TrackLocalMap): re-project with the refined pose, tight radius
         idx, uv = self._visible(lm, T)
-        pairs = match_by_projection(uv, lm.desc[idx], feats.uv_px, feats.desc, c.refine_radius_px, tree=tree)
-        if len(pairs) >= c.min_inliers:
-            pts2 = idx[pairs[:, 0]]
-            sol2 = solve_pnp(self.K, lm.p_slam[pts2], feats.uv_px[pairs[:, 1]], T, c.pnp_reproj_px, c.min_inliers)
+        pairs2 = match_by_projection(uv, lm.desc[idx], feats.uv_px, feats.desc, c.refine_radius_px, tree=tree)
+        if len(pairs2) >= c.min_inliers:
+            pts2 = idx[pairs2[:, 0]]
+            sol2 = solve_pnp(self.K, lm.p_slam[pts2], feats.uv_px[pairs2[:, 1]], T, c.pnp_reproj_px, c.min_inliers)
             if sol2 is not None and sol2[1].sum() >= inl.sum():
                 T, inl = sol2
-                pts, pairs = pts2, pairs
+                pts, pairs = pts2, pairs2
         return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]])
 
     def _apply_correction(self) -> None:
