@@ -157,6 +157,7 @@ def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.nd
                              params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if cfg.mavlink.autopilot == "ardupilot" else {}).start()
     bridge = Bridge(cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{autopilot.port}"}), cfg.switching, clock=clock).start()
     localizer = build_localizer(cfg, camera, T_body_cam, model)
+    out_msg = cfg.mavlink.output.upper()  # the fix message (GPS_INPUT, ODOMETRY, ...); heartbeats etc. are not fixes
     run, alignments = RunLog(), []
     last_key = None
     try:
@@ -172,7 +173,7 @@ def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.nd
             if step.truth is not None:
                 autopilot.set_truth(step.truth.lat_deg, step.truth.lon_deg, step.truth.h_msl_m)
             status = bridge.gnss_status()
-            sent_before = sum(bridge.stats().sent.values())
+            sent_before = bridge.stats().sent[out_msg]
             t_capture = time.perf_counter()   # the frame exists (rendered / decoded) from here on
             rec = localizer.process(PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD))
             t_tracked = time.perf_counter()
@@ -180,7 +181,7 @@ def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.nd
             t_wire = time.perf_counter()
             run.records.append(rec)
             run.wall_track_ms.append((t_tracked - t_capture) * 1e3)
-            if sum(bridge.stats().sent.values()) > sent_before:  # bytes were written to the socket
+            if bridge.stats().sent[out_msg] > sent_before:  # this fix's bytes were written to the socket
                 run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
             if step.truth is not None:
                 run.truth_ecef_m[rec.seq] = step.truth.p_ecef_m
@@ -327,6 +328,17 @@ def alignment_errors(br: BenchRun) -> tuple[dict, dict]:
     return out, reasons
 
 
+def tracking_events(run: RunLog) -> list[tuple[float, str]]:
+    """(t_s, text) whenever the SLAM tracking state or map (map_id, reset_counter) changes."""
+    out, last = [], None
+    for r in run.records:
+        key = (r.pose.state.value, r.pose.map_id, r.pose.reset_counter)
+        if key != last:
+            out.append((r.t_s, f"SLAM {key[0]} (map {key[1]}, reset {key[2]})"))
+            last = key
+    return out
+
+
 def _pick(d: dict, keys) -> dict:
     return {k: d.get(k) for k in keys}
 
@@ -385,6 +397,7 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
         "slam_config": cfg.slam.model_dump(),
         "switch_events": s["switch_events"],
         "alignment_events": s["alignment_events"],
+        "tracking_events": tracking_events(br.run),
         "published_terraslam": PUBLISHED,
         "reasons": reasons,
     }
