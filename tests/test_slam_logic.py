@@ -1,0 +1,180 @@
+"""slam/: constructed cases for geometry, BA (real gtsam), PLM Eq. 4, RLC Algorithm 1, place index."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from skimage import data
+
+from slam.ba import BAProblem, bundle_adjust
+from slam.features import make_orb_cpu
+from slam.geometry import (correct_pose_by_sim3, initialize_two_view, inv_T, make_T, project, ransac_sim3,
+                           sim3_matrix)
+from slam.matching import match_bf
+from slam.place import PlaceIndex
+from slam.plm import in_reliable_region, plm_window, recursive_loop_closing, reliable_region
+from slam.types import CameraModel
+
+K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    v = {"x": [1, 0, 0], "y": [0, 1, 0], "z": [0, 0, 1]}[axis]
+    return cv2.Rodrigues(np.deg2rad(deg) * np.array(v, float))[0]
+
+
+# --- Eq. 4 / PLM ---------------------------------------------------------------------------------
+
+def test_reliable_region_matches_eq4():
+    prev = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], float)  # w = 4
+    r = reliable_region(prev)
+    np.testing.assert_allclose(r.center, [3 + 3 / 4, 0, 0])
+    assert r.radius == pytest.approx(3 / 12)
+
+
+def test_plm_halves_window_for_steady_motion_only():
+    prev = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    assert plm_window(prev, np.array([10.0, 0, 0]), 10) == 5  # constant velocity: inside R
+    assert plm_window(prev, np.array([10.0, 1.0, 0]), 10) == 10  # sudden side step: outside R
+    assert plm_window(prev[:1], np.array([1.0, 0, 0]), 10) == 10  # no history: full window
+
+
+# --- Algorithm 1 -----------------------------------------------------------------------------------
+
+def line(n: int) -> list[np.ndarray]:
+    return [np.array([float(i), 0, 0]) for i in range(n)]
+
+
+def test_rlc_stops_after_initial_ba_when_motion_is_steady():
+    centers = line(100)
+    runs: list[list[int]] = []
+    wins = recursive_loop_closing(10, 90, 10, runs.append, lambda: centers)
+    assert wins == runs and len(runs) == 1
+    assert runs[0] == list(range(10, 21)) + list(range(80, 91))
+
+
+def test_rlc_walks_back_until_the_frame_is_reliable():
+    centers = line(100)
+    for i in range(56, 100):  # erratic (unreliable) motion after frame 55, steady before
+        centers[i] = centers[i] + [0, 2.0 * (-1) ** i, 0]
+    runs: list[list[int]] = []
+    recursive_loop_closing(10, 90, 10, runs.append, lambda: centers)
+    # Line 1; probe 80 fails -> Line 8 on [70, 90]; probe 70 fails -> [60, 80]; probe 60 fails ->
+    # [50, 70]; probe 50 (window 40..49 steady) is reliable -> stop (Lines 9-11)
+    assert [(r[0], r[-1]) for r in runs] == [(10, 90), (70, 90), (60, 80), (50, 70)]
+    assert not in_reliable_region(centers, 60, 10) and in_reliable_region(centers, 50, 10)
+
+
+def test_rlc_reaches_the_start_when_nothing_is_reliable():
+    rng = np.random.default_rng(0)
+    centers = [rng.normal(0, 5, 3) for _ in range(60)]
+    runs: list[list[int]] = []
+    recursive_loop_closing(5, 55, 10, runs.append, lambda: centers)
+    assert runs[-1][0] == 5  # last window touches I_start
+    assert all(a[0] > b[0] for a, b in zip(runs[1:], runs[2:]))  # strictly backwards
+
+
+# --- Sim(3) --------------------------------------------------------------------------------------
+
+def test_ransac_sim3_recovers_similarity_with_outliers():
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-5, 5, (80, 3))
+    S = sim3_matrix(1.7, rot("z", 30) @ rot("x", 10), np.array([3.0, -2, 1]))
+    dst = src @ S[:3, :3].T + S[:3, 3]
+    dst[:20] += rng.uniform(-10, 10, (20, 3))
+    S_est, inl = ransac_sim3(src, dst, thresh=0.1)
+    assert inl[20:].all() and not inl[:20].any()
+    np.testing.assert_allclose(S_est, S, atol=1e-6)
+
+
+def test_pose_correction_keeps_pixels_when_map_moves_by_sim3():
+    rng = np.random.default_rng(2)
+    T = make_T(rot("y", 20), np.array([0.5, -0.2, 3.0]))
+    P = rng.uniform(-1, 1, (30, 3)) + [0, 0, 5]
+    S = sim3_matrix(2.5, rot("z", 40), np.array([1.0, 2, 3]))
+    uv0, _ = project(K, T, P)
+    uv1, _ = project(K, correct_pose_by_sim3(T, S), P @ S[:3, :3].T + S[:3, 3])
+    np.testing.assert_allclose(uv1, uv0, atol=1e-8)
+
+
+# --- two-view initialization ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_two_view_init_recovers_motion(planar):
+    rng = np.random.default_rng(3)
+    n = 400
+    P = np.c_[rng.uniform(-30, 30, (n, 2)), np.zeros(n) if planar else rng.uniform(-15, 15, n)] + [0, 0, 60]
+    T1 = np.eye(4)
+    T2 = make_T(rot("y", 3), np.array([-4.0, 0.5, 0.2]))
+    uv1, _ = project(K, T1, P)
+    uv2, _ = project(K, T2, P)
+    uv1 += rng.normal(0, 0.3, uv1.shape)
+    uv2 += rng.normal(0, 0.3, uv2.shape)
+    init = initialize_two_view(K, uv1, uv2)
+    assert init is not None
+    assert init.model == ("homography" if planar else "essential")
+    R_err = np.rad2deg(np.linalg.norm(cv2.Rodrigues(init.T_cam2_cam1[:3, :3] @ T2[:3, :3].T)[0]))
+    assert R_err < 0.5
+    t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
+    assert np.dot(init.T_cam2_cam1[:3, 3], t_true) > 0.99
+    assert init.good.mean() > 0.8
+
+
+# --- bundle adjustment (real gtsam solve) ---------------------------------------------------------
+
+def test_bundle_adjust_recovers_poses_and_points():
+    rng = np.random.default_rng(4)
+    P = rng.uniform([-20, -20, 50], [20, 20, 70], (200, 3))
+    poses = np.array([make_T(rot("x", 2 * i), np.array([-3.0 * i, 0, 0])) for i in range(6)])
+    o_pose, o_pt, o_uv = [], [], []
+    for i, T in enumerate(poses):
+        uv, _ = project(K, T, P)
+        o_pose += [i] * len(P)
+        o_pt += list(range(len(P)))
+        o_uv.append(uv + rng.normal(0, 0.5, uv.shape))
+    noisy = poses.copy()
+    for i in range(2, 6):
+        noisy[i] = make_T(rot("z", 1.0) @ poses[i][:3, :3], poses[i][:3, 3] + rng.normal(0, 0.3, 3))
+    prob = BAProblem(K, noisy, np.array([True, True, False, False, False, False]),
+                     P + rng.normal(0, 0.5, P.shape), np.array(o_pose), np.array(o_pt), np.vstack(o_uv))
+    res = bundle_adjust(prob)
+    noise_floor = 0.5 * len(o_pt) * 2 * 0.5**2  # 0.5 * sum of squared 0.5 px noise
+    assert res.final_error < 1.5 * noise_floor < 0.1 * res.initial_error
+    assert np.median(res.residual_px) < 1.0
+    for T_est, T_true in zip(res.T_cam_slam, poses):
+        assert np.linalg.norm(inv_T(T_est)[:3, 3] - inv_T(T_true)[:3, 3]) < 0.1
+
+
+# --- place recognition --------------------------------------------------------------------------
+
+def test_place_index_finds_the_revisited_place():
+    cam = CameraModel(512, 512, K)
+    ex = make_orb_cpu(cam, 800)
+    imgs = [data.camera(), data.coins(), data.moon(), data.text(), data.brick(), data.grass()]
+    imgs = [cv2.resize(i if i.ndim == 2 else cv2.cvtColor(i, cv2.COLOR_RGB2GRAY), (512, 512)) for i in imgs]
+    idx = PlaceIndex()
+    for k, im in enumerate(imgs):
+        idx.add(k, ex(im).desc)
+    # revisit image 0 from a slightly different viewpoint (rotated, shifted)
+    M = cv2.getRotationMatrix2D((256, 256), 8, 1.05)
+    query = ex(cv2.warpAffine(imgs[0], M, (512, 512))).desc
+    top = idx.query(query)
+    assert top[0].kf_id == 0 and top[0].votes > 3 * max([c.votes for c in top[1:]] + [1])
+    assert all(c.kf_id != 0 for c in idx.query(query, exclude_after_kf_id=-1))
+
+
+def test_torch_and_cpu_features_both_match_a_warped_image():
+    pytest.importorskip("torch")
+    from slam.torch_orb import make_orb_torch
+
+    cam = CameraModel(512, 512, K)
+    img = cv2.resize(data.camera(), (512, 512))
+    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
+    warped = cv2.warpAffine(img, M, (512, 512))
+    for ex in (make_orb_cpu(cam, 800), make_orb_torch(cam, 800, 256, "cpu")):
+        a, b = ex(img), ex(warped)
+        assert len(a) > 400
+        pairs = match_bf(a.desc, b.desc, ratio=0.8)
+        pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
+        ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
+        assert ok.sum() > 100 and ok.mean() > 0.8
