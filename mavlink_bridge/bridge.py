@@ -31,6 +31,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 log = logging.getLogger(__name__)
 
 TICK_S = 0.05
+CONFIRM_RESEND_S = 1.0   # source-switch commands are re-sent until the autopilot confirms them
+CONFIRM_TRIES = 5
 LATENCY_SAMPLES = 10000
 
 
@@ -80,6 +82,7 @@ class Bridge:
         self._next_origin_s = 0.0
         self._last_boot_ms: int | None = None
         self._period_s = 1.0 / mav_cfg.rate_hz
+        self._pending: dict[str, list] = {}    # key → [message, expected wire value | None, next send s, tries]
         # ArduPilot reports GPS instance 0 in GPS_RAW_INT and 1 in GPS2_RAW: watch the one that is not ours.
         self._gnss_msg = "GPS2_RAW" if (mav_cfg.autopilot == "ardupilot" and mav_cfg.output == "gps_input" and mav_cfg.gps_id == 0) else "GPS_RAW_INT"
         if mav_cfg.autopilot == "px4" and mav_cfg.output in emitters.LOCAL_OUTPUTS and mav_cfg.rate_hz < 20:
@@ -222,6 +225,15 @@ class Bridge:
             self._stats.boot_offset_s = now - msg.time_boot_ms / 1000.0
         elif t == "COMMAND_ACK":
             self._stats.acks[(msg.command, msg.result)] += 1
+            if f"cmd:{msg.command}" in self._pending and msg.result != mavlink.MAV_RESULT_IN_PROGRESS:
+                del self._pending[f"cmd:{msg.command}"]
+                if msg.result != mavlink.MAV_RESULT_ACCEPTED:
+                    log.error("autopilot refused command %d (result %d): source switch not applied", msg.command, msg.result)
+        elif t == "PARAM_VALUE":
+            name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
+            pending = self._pending.get(f"param:{name.rstrip(chr(0))}")
+            if pending is not None and struct.pack("<f", msg.param_value) == struct.pack("<f", pending[1]):
+                del self._pending[f"param:{name.rstrip(chr(0))}"]
 
     def _on_link_up(self, hb) -> None:
         kind = {mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", mavlink.MAV_AUTOPILOT_PX4: "px4"}.get(hb.autopilot, f"autopilot {hb.autopilot}")
@@ -279,6 +291,7 @@ class Bridge:
             need_origin = self._origin is None
         if event is not None:
             self._on_switch(event)
+        self._resend_pending(now)
         if self._last_fix_s is not None and now - self._last_fix_s > self.cfg.max_fix_age_s:
             self._stop_output("no fresh fix")
         if need_origin and self.cfg.output in emitters.LOCAL_OUTPUTS and link_up and now >= self._next_origin_s:
@@ -305,7 +318,9 @@ class Bridge:
             # Effective with GPS_AUTO_SWITCH=0 (docs/AUTOPILOTS.md): make our instance primary, or the receiver's.
             self._param_set(b"GPS_PRIMARY", c.gps_id if active else 1 - c.gps_id, mavlink.MAV_PARAM_TYPE_INT8)
         elif c.autopilot == "ardupilot":
-            self._command(mavlink.MAV_CMD_SET_EKF_SOURCE_SET, c.ekf_source_set_extnav if active else c.ekf_source_set_gnss)
+            msg = self._link.mav.command_long_encode(c.target_system, c.target_component, mavlink.MAV_CMD_SET_EKF_SOURCE_SET, 0,
+                                                     c.ekf_source_set_extnav if active else c.ekf_source_set_gnss, 0, 0, 0, 0, 0, 0)
+            self._confirm(f"cmd:{mavlink.MAV_CMD_SET_EKF_SOURCE_SET}", msg, None)
         else:
             # PX4 keeps fusing a (spoofed) receiver that looks healthy: stop GNSS fusion while we lead.
             self._param_set(b"EKF2_GPS_CTRL", 0 if active else c.px4_gps_ctrl, mavlink.MAV_PARAM_TYPE_INT32)
@@ -313,4 +328,26 @@ class Bridge:
     def _param_set(self, name: bytes, value: int, ptype: int) -> None:
         # ArduPilot takes integers as float values; PX4 encodes them bytewise in the float field.
         v = struct.unpack("<f", struct.pack("<i", value))[0] if self.cfg.autopilot == "px4" else float(value)
-        self._send(self._link.mav.param_set_encode(self.cfg.target_system, self.cfg.target_component, name, v, ptype))
+        msg = self._link.mav.param_set_encode(self.cfg.target_system, self.cfg.target_component, name, v, ptype)
+        self._confirm(f"param:{name.decode()}", msg, v)
+
+    def _confirm(self, key: str, msg, expected: float | None) -> None:
+        """Send now and re-send until PARAM_VALUE / COMMAND_ACK confirms it (a lossy link must not
+        leave the autopilot on the wrong source); a newer request for the same key replaces it."""
+        self._pending[key] = [msg, expected, self.clock() + CONFIRM_RESEND_S, 1]
+        self._send(msg)
+
+    def _resend_pending(self, now: float) -> None:
+        for key, p in list(self._pending.items()):
+            if now < p[2]:
+                continue
+            if p[3] >= CONFIRM_TRIES:
+                log.error("%s not confirmed by the autopilot after %d tries: source switch may not be applied", key, p[3])
+                del self._pending[key]
+                continue
+            p[2], p[3] = now + CONFIRM_RESEND_S, p[3] + 1
+            self._send(p[0])
+
+    def pending_confirmations(self) -> list[str]:
+        """Source-switch commands the autopilot has not confirmed yet."""
+        return list(self._pending)

@@ -113,6 +113,7 @@ def test_gnss_loss_takeover_follow_and_handback_after_hysteresis(rigs, personali
     assert rig.sim.estimate().source == OUR_SOURCE[personality]
     assert rig.est_error_m() < 1.5  # the autopilot follows our fixes (0.25 m lag per 50 ms at 5 m/s)
     assert any(text.startswith("TerraSLAM ACTIVE") for _, text in rig.sim.received().statustext)
+    assert rig.bridge.pending_confirmations() == []  # the source switch was confirmed
     t_back = time.monotonic()
     assert rig.fly(5.0, until=lambda: rig.bridge.state is BridgeState.STANDBY)
     back = rig.bridge.events()[-1]
@@ -243,3 +244,15 @@ def test_ardupilot_external_nav_origin_and_source_set(rigs):
     assert rig.bridge.stats().origin is not None
     rig.fly(1.0, gnss="lost")
     assert rig.est_error_m() < 1.5
+
+
+def test_unconfirmed_source_switch_is_resent_then_reported(rigs):
+    rig = rigs("ardupilot", params={"GPS_AUTO_SWITCH": 1})
+    del rig.sim.params["GPS_PRIMARY"]  # this autopilot never confirms the PARAM_SET
+    rig.fly(1.5)
+    rig.fly(1.0, gnss="lost")
+    assert rig.bridge.pending_confirmations() == ["param:GPS_PRIMARY"]
+    rig.fly(4.5, gnss="lost")
+    assert rig.sim.received().counts["PARAM_SET"] == 5  # CONFIRM_TRIES, 1 s apart
+    assert rig.bridge.pending_confirmations() == []
+    assert rig.sim.estimate().source == "mavlink_gps"  # auto-switch still picks us on fix loss
