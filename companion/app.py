@@ -99,9 +99,21 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "finetune_ms": stats(np.array(run.finetune_ms)),
         "autopilot_horizontal_error_m_after_takeover": stats(np.array([e for t, e, _ in run.autopilot_err_m
                                                                         if run.takeover_t_s is not None and t >= run.takeover_t_s + 1.0])),
+        "tracking_events": tracking_events(run.records),
         "switch_events": run.switch_events,
         "alignment_events": run.alignment_events,
     }
+
+
+def tracking_events(records: list[FrameRecord]) -> list[tuple[float, str]]:
+    """SLAM state / map changes over the run: (t_s, text) at each transition."""
+    out, prev = [], None
+    for r in records:
+        key = (r.pose.state.value, r.pose.map_id, r.pose.reset_counter)
+        if key != prev:
+            out.append((r.t_s, f"SLAM {key[0]} (map {key[1]}, reset {key[2]})"))
+            prev = key
+    return out
 
 
 def write_outputs(run: RunLog, summary: dict, out_dir: Path, origin, title: str) -> list[Path]:
@@ -207,6 +219,9 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
         active = [e for e in bridge.events() if e.to_state.value == "active"]
         run.takeover_t_s = active[0].t_s if active else None
         run.alignment_events = list(localizer.events)
+        if localizer.bootstrap.last_refusal:
+            run.alignment_events.append((run.records[-1].t_s if run.records else 0.0,
+                                         f"last GNSS bootstrap refusal: {localizer.bootstrap.last_refusal}"))
         run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
         received = autopilot.received()
         bridge_stats = bridge.stats()
@@ -284,6 +299,9 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             if progress is not None:
                 progress(k + 1, n, "")
         run.alignment_events = list(localizer.events)
+        if localizer.bootstrap.last_refusal:
+            run.alignment_events.append((run.records[-1].t_s if run.records else 0.0,
+                                         f"last GNSS bootstrap refusal: {localizer.bootstrap.last_refusal}"))
         run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
     finally:
         localizer.close()

@@ -57,6 +57,10 @@ def _print_summary(summary: dict, out: Path) -> None:
         console.print("[bold]Switch timeline[/bold]")
         for ts, text in summary["switch_events"]:
             console.print(f"  t={ts:7.2f} s  {text}")
+    if summary.get("tracking_events"):
+        console.print("[bold]SLAM timeline[/bold] (first 12)")
+        for ts, text in summary["tracking_events"][:12]:
+            console.print(f"  t={ts:7.2f} s  {text}")
     if summary.get("alignment_events"):
         console.print("[bold]Alignment timeline[/bold] (first 12)")
         for ts, text in summary["alignment_events"][:12]:

@@ -77,6 +77,7 @@ class BootstrapCollector:
     t_s: list[float] = field(default_factory=list)
     sigma_m: list[float] = field(default_factory=list)
     map_key: tuple[int, int] | None = None
+    last_refusal: str | None = None
     _last_gnss_t: float | None = None
 
     def add(self, pose: SlamPose, sample: GnssSample | None, trusted: bool) -> None:
@@ -111,7 +112,8 @@ class BootstrapCollector:
                 reset_counter=reset_counter, map_id=map_id, sigma_gnss_m=float(np.median(self.sigma_m)),
             )
         except ValueError as e:
-            log.warning("GNSS bootstrap failed: %s", e)
+            log.debug("GNSS bootstrap refused: %s", e)
+            self.last_refusal = str(e)
             return None
 
 
