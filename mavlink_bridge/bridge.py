@@ -321,6 +321,10 @@ class Bridge:
             msg = self._link.mav.command_long_encode(c.target_system, c.target_component, mavlink.MAV_CMD_SET_EKF_SOURCE_SET, 0,
                                                      c.ekf_source_set_extnav if active else c.ekf_source_set_gnss, 0, 0, 0, 0, 0, 0)
             self._confirm(f"cmd:{mavlink.MAV_CMD_SET_EKF_SOURCE_SET}", msg, None)
+        elif c.output == "hil_gps":
+            # HIL_GPS is itself a GPS to EKF2: EKF2_GPS_CTRL=0 would drop it too. PX4 picks the better
+            # receiver on fix loss; a spoofed receiver is not overridden on this path (docs/AUTOPILOTS.md).
+            log.warning("px4 hil_gps: no source switch available; PX4 selects the receiver by itself")
         else:
             # PX4 keeps fusing a (spoofed) receiver that looks healthy: stop GNSS fusion while we lead.
             self._param_set(b"EKF2_GPS_CTRL", 0 if active else c.px4_gps_ctrl, mavlink.MAV_PARAM_TYPE_INT32)

@@ -256,3 +256,19 @@ def test_unconfirmed_source_switch_is_resent_then_reported(rigs):
     assert rig.sim.received().counts["PARAM_SET"] == 5  # CONFIRM_TRIES, 1 s apart
     assert rig.bridge.pending_confirmations() == []
     assert rig.sim.estimate().source == "mavlink_gps"  # auto-switch still picks us on fix loss
+
+
+@pytest.mark.parametrize("personality,output,source", [
+    ("px4", "vision_position_estimate", "external_vision"),
+    ("px4", "global_position_sensor", "aux_global"),
+    ("px4", "hil_gps", "hil_gps"),
+    ("ardupilot", "vision_position_estimate", "external_nav"),
+])
+def test_alternative_outputs_take_over_on_gnss_loss(rigs, personality, output, source):
+    rig = rigs(personality, output=output, params={} if personality == "px4" else {"GPS_AUTO_SWITCH": 1})
+    rig.fly(2.0)
+    assert rig.sim.estimate().source == "gnss"
+    assert rig.fly(3.0, gnss="lost", until=lambda: rig.sim.estimate().source == source)
+    rig.fly(1.0, gnss="lost")
+    assert rig.sim.estimate().source == source and rig.est_error_m() < 1.5
+    assert rig.sim.received().rejections == [] or all("gap" in r for _, _, r in rig.sim.received().rejections)
