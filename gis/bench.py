@@ -98,7 +98,7 @@ def finetune_timing(model: GisModel, n_repeats: int = 15, seed: int = 0) -> dict
     return {"n_model_points": len(model), "median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90))}
 
 
-def size_sweep(extents_m: tuple[float, ...] = (1000.0, 10000.0), spacing_m: float = 2.0) -> list[dict]:
+def size_sweep(extents_m: tuple[float, ...] = (1000.0, 10000.0), spacing_m: float = 3.0) -> list[dict]:
     """finetune_timing on box cities of each extent (same density); ratio to the first."""
     rows = []
     for e in extents_m:
@@ -128,7 +128,7 @@ def replay_flight(model: GisModel, T_enu_cam: np.ndarray, observe: Observe, T_bo
     cfg = config or AlignmentConfig()
     rng = np.random.default_rng(seed)
     tuner = FineTuner(model, cfg)
-    glob = Globalizer(T_body_cam, cfg.slam_drift_fraction, cfg.sigma_floor_m, cfg.model_sigma_m)
+    glob = Globalizer.from_config(T_body_cam, cfg)
     T_slam_enu = T_ENU_SLAM.inverse()
     alignment = _initial(model, T_enu_cam[0, :3, 3])
     walk = np.zeros(3)
@@ -177,6 +177,7 @@ def circle_flight(n: int, radius_m: float = 150.0, alt_m: float = 60.0, pitch_do
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sweep", default="1000,10000", help="box-city extents (m) for the map-size sweep")
+    ap.add_argument("--sweep-spacing", type=float, default=3.0, help="sampling (m) of the sweep's models (memory: ~50 B/point)")
     ap.add_argument("--frames", type=int, default=1200, help="frames of the replayed flight")
     args = ap.parse_args()
     model = box_city_model(1000.0, ORIGIN, seed=0, spacing_m=1.0)
@@ -192,7 +193,7 @@ def main() -> None:
               f"P99 {f.p99_m:.3f} m, integrity {100 * f.integrity_fraction:.2f} % beyond 3·h_acc, "
               f"registrations {f.n_accepted} accepted / {f.n_rejected} rejected")
     del model
-    for r in size_sweep(tuple(float(x) for x in args.sweep.split(","))):
+    for r in size_sweep(tuple(float(x) for x in args.sweep.split(",")), args.sweep_spacing):
         print(f"fine-tune on a {r['area_km2']:.0f} km² model ({r['n_model_points']} pts): median {r['median_ms']:.1f} ms, "
               f"P90 {r['p90_ms']:.1f} ms, ratio {r['ratio']:.2f}")
 

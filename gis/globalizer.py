@@ -14,6 +14,7 @@ import threading
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gis.config import AlignmentConfig
 from gis.geodesy import R_NED_ENU, LocalFrame, ecef_to_geodetic, ellipsoid_to_msl
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from slam.types import SlamPose
@@ -31,6 +32,11 @@ class Globalizer:
         self._alignment: Alignment | None = None
         self._cov_center: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._prev: tuple[float, np.ndarray, Alignment] | None = None
+
+    @classmethod
+    def from_config(cls, T_body_cam: np.ndarray, config: AlignmentConfig) -> "Globalizer":
+        """With the fix-covariance terms of the ``alignment`` config section."""
+        return cls(T_body_cam, config.slam_drift_fraction, config.sigma_floor_m, config.model_sigma_m)
 
     @property
     def alignment(self) -> Alignment | None:

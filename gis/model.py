@@ -11,7 +11,7 @@ size of the model (digital-twin paper §III-E: registration on a fixed-size crop
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +44,6 @@ class GisModel:
     origin: LocalFrame
     source_crs: str
     source_path: Path
-    _index: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         p = np.ascontiguousarray(self.points_enu, dtype=np.float64)
