@@ -1,0 +1,208 @@
+"""SLAM benchmark on the simulator's scenarios (issue 4 targets, TerraSLAM Fig. 14 ablation).
+
+    python -m slam.bench --scenario nominal --frames 600 [--ablation] [--force-loss 300:15]
+
+Prints per-frame tracking latency (wall and tracking-thread CPU, mean/P99), tracking ratio,
+ATE after Sim(3) alignment as % of path length, local-mapping and loop-closing times, map size
+and process memory. Frames are fed at the scenario's frame rate (real-time pacing) so the
+background threads compete with tracking as they would in flight.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import psutil
+
+from slam.config import SlamConfig
+from slam.geometry import umeyama_sim3
+from slam.system import SlamSystem
+from slam.types import CameraModel, Frame, TrackingState
+
+
+@dataclass
+class Sequence:
+    name: str
+    camera: CameraModel
+    images: np.ndarray  # (N,H,W) uint8 gray
+    T_enu_cam: np.ndarray  # (N,4,4) truth
+    t_s: np.ndarray
+    fps: float
+
+
+def render_sequence(scenario: str = "nominal", n_frames: int = 300, seed: int = 0,
+                    cache_dir: str | None = None, start: int = 0) -> Sequence:
+    """Render frames [start, start+n_frames) of a simulator scenario (optionally cached as .npz)."""
+    import cv2
+
+    from companion.sim import make_scenario  # the benchmark, not slam/ itself, uses the simulator
+
+    path = os.path.join(cache_dir, f"slam_{scenario}_{seed}_{start}_{n_frames}.npz") if cache_dir else None
+    sc = make_scenario(scenario, seed=seed, n_frames=start + n_frames)
+    if path and os.path.exists(path):
+        d = np.load(path)
+        return Sequence(scenario, sc.camera, d["images"], d["T"], d["t"], sc.fps)
+    imgs, T, t = [], [], []
+    for st in sc.steps(start=start):
+        im = st.frame.image
+        imgs.append(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im)
+        T.append(st.truth.T_enu_cam)
+        t.append(st.frame.t_s)
+    seq = Sequence(scenario, sc.camera, np.array(imgs), np.array(T), np.array(t), sc.fps)
+    if path:
+        os.makedirs(cache_dir, exist_ok=True)
+        np.savez(path, images=seq.images, T=seq.T_enu_cam, t=seq.t_s)
+    return seq
+
+
+@dataclass
+class RunResult:
+    name: str
+    tracking_ms: np.ndarray
+    tracking_cpu_ms: np.ndarray
+    states: list[TrackingState]
+    est_centers: np.ndarray  # (M,3) SLAM frame, frames with a pose
+    true_centers: np.ndarray  # (M,3) ENU
+    reset_counter: int
+    local_mapping_ms: list[float]
+    local_ba_ms: list[float]
+    ba_window: list[int]
+    loop_ms: list[float]
+    loops: list[tuple[int, int]]
+    n_points: int
+    rss_mb: list[float] = field(default_factory=list)
+
+    @property
+    def tracking_ratio(self) -> float:
+        return float(np.mean([s.has_pose for s in self.states]))
+
+    @property
+    def ratio_after_init(self) -> float:
+        first = next((i for i, s in enumerate(self.states) if s != TrackingState.INITIALIZING), len(self.states))
+        rest = self.states[first:]
+        return float(np.mean([s.has_pose for s in rest])) if rest else 0.0
+
+    def ate(self) -> tuple[float, float, float]:
+        """(RMSE m, path length m, RMSE % of path) after a Sim(3) fit of the estimate to truth."""
+        return ate_after_sim3(self.est_centers, self.true_centers)
+
+
+def ate_after_sim3(est: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
+    if len(est) < 3:
+        return float("nan"), 0.0, float("nan")
+    S = umeyama_sim3(est, truth)
+    err = np.linalg.norm(est @ S[:3, :3].T + S[:3, 3] - truth, axis=1)
+    rmse = float(np.sqrt((err**2).mean()))
+    length = float(np.linalg.norm(np.diff(truth, axis=0), axis=1).sum())
+    return rmse, length, 100 * rmse / max(length, 1e-9)
+
+
+def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bool = True,
+                 blackout: tuple[int, int] | None = None, order: np.ndarray | None = None) -> RunResult:
+    """Feed the sequence to a SlamSystem. blackout=(first, count) replaces frames with black images
+    (a forced tracking loss); ``order`` replays frame indices in a custom order (e.g. out and back)."""
+    proc = psutil.Process()
+    order = np.arange(len(seq.images)) if order is None else order
+    ms, cpu, states, est, tru, rss = [], [], [], [], [], []
+    with SlamSystem(seq.camera, config) as s:
+        for n, i in enumerate(order):
+            img = seq.images[i]
+            if blackout and blackout[0] <= n < blackout[0] + blackout[1]:
+                img = np.zeros_like(img)
+            c0 = time.thread_time()
+            pose = s.track(Frame(img, n / seq.fps, n))
+            cpu.append((time.thread_time() - c0) * 1e3)
+            ms.append(pose.tracking_ms)
+            states.append(pose.state)
+            if pose.state.has_pose:
+                est.append(pose.T_slam_cam[:3, 3])
+                tru.append(seq.T_enu_cam[i][:3, 3])
+            if n % 100 == 0:
+                rss.append(proc.memory_info().rss / 2**20)
+            if realtime:
+                time.sleep(max(0.0, 1 / seq.fps - pose.tracking_ms / 1e3))
+            s.poll_map_updates()
+        s.wait_mapping()
+        st = s.mapper.stats
+        return RunResult(name, np.array(ms), np.array(cpu), states, np.array(est).reshape(-1, 3),
+                         np.array(tru).reshape(-1, 3), s.reset_counter, list(st.local_mapping_ms),
+                         list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms), list(st.loops),
+                         len(s.mapper.map.points), rss)
+
+
+def ablation_configs(base: SlamConfig) -> list[tuple[str, SlamConfig]]:
+    """TerraSLAM Fig. 14: baseline, +GA (torch features), +PLM, +RLC (cumulative)."""
+    b = base.model_copy(update=dict(feature_backend="cpu", progressive_local_mapping=False, loop_closing="full"))
+    ga = b.model_copy(update=dict(feature_backend="torch"))
+    plm = ga.model_copy(update=dict(progressive_local_mapping=True))
+    rlc = plm.model_copy(update=dict(loop_closing="recursive"))
+    return [("baseline", b), ("+GA", ga), ("+PLM", plm), ("+RLC", rlc)]
+
+
+def _p(x, q) -> float:
+    return float(np.percentile(x, q)) if len(x) else float("nan")
+
+
+def report(r: RunResult) -> str:
+    rmse, length, pct = r.ate()
+    lines = [
+        f"[{r.name}] frames {len(r.states)}  tracked {100 * r.tracking_ratio:.1f} % (after init {100 * r.ratio_after_init:.1f} %)"
+        f"  resets {r.reset_counter}  relocalized {sum(s == TrackingState.RELOCALIZED for s in r.states)}",
+        f"  tracking wall ms: mean {r.tracking_ms.mean():.1f}  P99 {_p(r.tracking_ms, 99):.1f}   "
+        f"tracking-thread CPU ms: mean {r.tracking_cpu_ms.mean():.1f}  P99 {_p(r.tracking_cpu_ms, 99):.1f}",
+        f"  ATE after Sim(3): {rmse:.3f} m over {length:.1f} m path = {pct:.2f} %",
+        f"  local mapping ms/keyframe: mean {np.mean(r.local_mapping_ms or [np.nan]):.0f}  (BA solve mean "
+        f"{np.mean(r.local_ba_ms or [np.nan]):.0f}, window mean {np.mean(r.ba_window or [np.nan]):.1f}) over "
+        f"{len(r.local_mapping_ms)} keyframes",
+        f"  loops closed {len(r.loops)}  loop-correction ms: {', '.join(f'{x:.0f}' for x in r.loop_ms) or '-'}",
+        f"  map points {r.n_points}  RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
+        f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (shared machine: wall times include contention)",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenario", default="nominal")
+    ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--ablation", action="store_true", help="run baseline/+GA/+PLM/+RLC (Fig. 14)")
+    ap.add_argument("--force-loss", default=None, help="FIRST:COUNT black frames to force a tracking loss")
+    ap.add_argument("--backend", choices=["cpu", "torch"], default="cpu")
+    ap.add_argument("--device", default="cpu", help="torch device for the torch backend")
+    ap.add_argument("--cache-dir", default=os.path.expanduser("~/.cache/terraslam/slam_bench"))
+    ap.add_argument("--no-realtime", action="store_true", help="feed frames as fast as possible")
+    a = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir)
+    print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' in {time.perf_counter() - t0:.0f} s")
+    base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
+    blackout = tuple(int(x) for x in a.force_loss.split(":")) if a.force_loss else None
+    runs = ablation_configs(base) if a.ablation else [(f"{a.backend}", base)]
+    results = []
+    for name, cfg in runs:
+        cfg = cfg.model_copy(update=dict(torch_device=a.device))
+        r = run_sequence(seq, cfg, name, realtime=not a.no_realtime, blackout=blackout)
+        print(report(r), flush=True)
+        results.append(r)
+    if a.ablation:
+        b = results[0]
+        print("\nablation (vs baseline):")
+        for r in results:
+            print(f"  {r.name:9s} track mean {r.tracking_ms.mean():6.1f} ms  P99 {_p(r.tracking_ms, 99):6.1f} ms  "
+                  f"LM {np.mean(r.local_mapping_ms or [np.nan]):6.0f} ms  loop {np.mean(r.loop_ms or [np.nan]):6.0f} ms  "
+                  f"ATE {r.ate()[2]:.2f} %")
+        plm, ga = results[2], results[1]
+        print(f"  PLM local-mapping time change: {100 * (np.mean(plm.local_mapping_ms) / np.mean(ga.local_mapping_ms) - 1):+.0f} %"
+              f", ATE change {100 * (plm.ate()[0] / ga.ate()[0] - 1):+.0f} %")
+        if results[3].loop_ms and results[2].loop_ms:
+            print(f"  RLC loop-correction time change: {100 * (np.mean(results[3].loop_ms) / np.mean(results[2].loop_ms) - 1):+.0f} %")
+        else:
+            print("  RLC: no loop closed in this sequence (use --scenario loop with enough frames)")
+
+
+if __name__ == "__main__":
+    main()
