@@ -442,9 +442,10 @@ def write_bench(br: BenchRun, fig: dict, out_dir: Path) -> list[Path]:
         cdf.update({f"{'GPS' if m == 'standalone' else 'DGPS'} (3D, simulated)": v for m, v in br.gnss_baselines.items()})
         written.append(viz.plot_error_cdf(out_dir / "error_cdf.png", cdf, xlabel="3D position error [m]",
                                           title=f"{br.name}: error CDF vs GNSS (cf. TerraSLAM Fig. 12a)"))
-        events = list(run.switch_events) + [(t, s) for t, s in run.alignment_events if "fine" in s][:10]
+        events = list(run.switch_events) + [(t, s) for t, s in run.alignment_events if "fine" in s or "gnss" in s][:10]
         if br.gnss_loss_at_s is not None:
             events.append((br.gnss_loss_at_s, "GNSS lost"))
+        events = [(t, s if len(s) <= 42 else s[:40] + "…") for t, s in events]  # labels stay inside the plot
         written.append(viz.plot_error_over_time(out_dir / "error_over_time.png",
                                                 {"ours 3D": (e.t_s, e.err_3d_m), "ours horizontal": (e.t_s, e.err_h_m),
                                                  "3σ reported h_acc": (e.t_s, 3 * e.h_acc_m)},
@@ -455,9 +456,11 @@ def write_bench(br: BenchRun, fig: dict, out_dir: Path) -> list[Path]:
         if g:
             tracks["GNSS"] = br.origin.ecef_to_enu(np.stack(g))[:, :2]
         tracks["ours"] = br.origin.ecef_to_enu(np.stack([f.p_ecef_m for f in fixes]))[:, :2]
-        sub = slice(None, None, max(1, len(br.model.points_enu) // 40000))
-        pts = br.origin.ecef_to_enu(br.model.origin.enu_to_ecef(br.model.points_enu[sub]))
-        written.append(viz.plot_track(out_dir / "track.png", tracks, map_points_en=pts, map_labels=br.model.labels[sub],
+        pts = br.origin.ecef_to_enu(br.model.origin.enu_to_ecef(br.model.points_enu))
+        lo, hi = tracks["truth"].min(0) - 60.0, tracks["truth"].max(0) + 60.0   # the map around the flight only
+        near = np.flatnonzero(np.all((pts[:, :2] >= lo) & (pts[:, :2] <= hi), axis=1))
+        near = near[:: max(1, len(near) // 40000)]
+        written.append(viz.plot_track(out_dir / "track.png", tracks, map_points_en=pts[near], map_labels=br.model.labels[near],
                                       title=f"{br.name}: truth / GNSS / ours"))
     lat = {"tracking": np.array(run.wall_track_ms), "camera → wire": np.array(run.camera_to_wire_ms)}
     written.append(viz.plot_latency_hist(out_dir / "latency.png", lat, title=f"{br.name}: per-frame latency (cf. TerraSLAM Fig. 12d)"))
