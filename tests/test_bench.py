@@ -152,6 +152,6 @@ def test_bench_nominal_300_frames(tmp_path):
     fig, _ = bench_one(AppConfig(), tmp_path, scenario="nominal", n_frames=300)
     print(json.dumps({k: fig[k] for k in REQUIRED_KEYS}, indent=1, default=str))
     assert missing_keys(fig) == []
-    assert fig["frames"] == 300 and fig["gnss_loss_at_s"] == pytest.approx(42.0)  # 70 % of 60 s at 5 fps
+    assert fig["frames"] == 300 and fig["gnss_loss_at_s"] == pytest.approx(fig["start_s"] + 21.0)  # 70 % of 30 s at 10 fps
     assert fig["tracking_ratio"] > 0.5
     assert (tmp_path / "bench.json").exists() and (tmp_path / "error_cdf.png").exists()
