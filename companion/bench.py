@@ -386,7 +386,7 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
     if s["fix_ratio_after_takeover"] is None:
         reasons["fix_ratio"] = "GNSS was never lost: no takeover"
     if not br.run.camera_to_wire_ms:
-        reasons["camera_to_wire_ms"] = "no MAVLink message was written (the bridge never went active)"
+        reasons["camera_to_wire_ms"] = "no fix message was written to MAVLink (no fix emitted)"
     if not br.run.finetune_ms:
         reasons["finetune_ms"] = "no fine-tuning registration ran"
     gnss = {}

@@ -40,6 +40,8 @@ def bench(
         extents = tuple(float(x) for x in sweep.split(",")) if sweep else ()
     except ValueError:
         fail(f"--sweep: expected comma-separated extents in metres, got {sweep!r}")
+    if any(e < 500.0 for e in extents):  # gis.bench.finetune_timing crops 200 m inside the model's edges
+        fail(f"--sweep: every extent must be at least 500 m, got {sweep!r}")
     try:
         cfg = load_config(config)
     except ConfigError as e:

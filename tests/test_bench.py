@@ -140,6 +140,8 @@ def test_cli_rejects_bad_arguments(tmp_path):
     assert r.exit_code == 2 and "unknown scenario 'atlantis'" in r.output
     r = runner.invoke(app, ["bench", "--scenario", "nominal", "--suite"])
     assert r.exit_code == 2 and "exactly one" in r.output
+    r = runner.invoke(app, ["bench", "--scenario", "nominal", "--sweep", "300,1000"])
+    assert r.exit_code == 2 and "at least 500 m" in r.output
     r = runner.invoke(app, ["bench", "--dataset", str(tmp_path / "missing")])
     assert r.exit_code == 2 and "is not a folder" in r.output
 
