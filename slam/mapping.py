@@ -56,6 +56,7 @@ class LocalMapper:
         self._ba = BAWorker()
         self._lm_version = 0
         self._correction_gen = 0
+        self._loop_cooldown_until = 0
         self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
         self._thread.start()
 
@@ -261,12 +262,22 @@ class LocalMapper:
         c = self.config
         cands = self._place.query(kf.desc, exclude_after_kf_id=kf.kf_id - c.loop_min_gap_keyframes)
         self._place.add(kf.kf_id, kf.desc)
+        if kf.kf_id < self._loop_cooldown_until:
+            return
+        with self.map.lock:
+            own = set(kf.point_ids[kf.point_ids >= 0].tolist())
+            shared = {cand.kf_id: len(own & set(self.map.keyframes[cand.kf_id].point_ids.tolist()))
+                      for cand in cands if cand.kf_id in self.map.keyframes}
         for cand in cands[:2]:
             if cand.votes < c.loop_min_votes:
                 break
+            log.debug("loop candidate %d votes %d shared %d", cand.kf_id, cand.votes, shared.get(cand.kf_id, 0))
+            if shared.get(cand.kf_id, 0) >= c.loop_min_inliers // 2:
+                continue  # already connected through common map points: nothing to close
             S = self._verify(kf, cand.kf_id)
             if S is not None:
                 self._correct(kf, cand.kf_id, S)
+                self._loop_cooldown_until = kf.kf_id + c.local_window
                 return
 
     def _verify(self, kf: Keyframe, old_id: int):

@@ -1,7 +1,7 @@
 """Place recognition without anything downloaded: an incremental binary-descriptor index.
 
-Each keyframe contributes a spread subset of its ORB descriptors to an OpenCV brute-force Hamming
-matcher (compiled, appended incrementally with ``add``); a query votes with its ratio-test-passing
+Each keyframe contributes a spread subset (400) of its ORB descriptors to an OpenCV brute-force Hamming
+matcher (compiled, appended incrementally with ``add``); a query (all its descriptors) votes with its ratio-test-passing
 nearest neighbours for the keyframes they came from. No vocabulary to train or ship; cost grows
 linearly with the number of keyframes (documented; fine for the flights we target).
 """
@@ -20,7 +20,7 @@ class PlaceCandidate:
 
 
 class PlaceIndex:
-    def __init__(self, per_keyframe: int = 150, ratio: float = 0.8, max_dist: int = 64) -> None:
+    def __init__(self, per_keyframe: int = 400, ratio: float = 0.8, max_dist: int = 64) -> None:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._kf_ids: list[int] = []
         self.per_keyframe = per_keyframe
@@ -43,7 +43,7 @@ class PlaceIndex:
         """Keyframes with the most votes, best first; keyframes with id > exclude_after_kf_id are skipped."""
         if len(self._kf_ids) == 0 or len(desc) < 2:
             return []
-        knn = self._matcher.knnMatch(np.ascontiguousarray(self._subset(desc)), k=2)
+        knn = self._matcher.knnMatch(np.ascontiguousarray(desc), k=2)
         votes = np.zeros(len(self._kf_ids), int)
         for pair in knn:
             if len(pair) == 2 and pair[0].distance < self.max_dist and pair[0].distance < self.ratio * pair[1].distance:

@@ -74,3 +74,53 @@ def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
     r = run_sequence(short, SlamConfig(feature_backend="torch"), "torch")  # torch on a shared CPU is slow
     assert r.ratio_after_init >= 0.95
     assert r.ate()[0] < max(2 * cpu_run.ate()[0], 1.0), (r.ate(), cpu_run.ate())
+
+
+@pytest.mark.parametrize("mode", ["recursive", "full"])
+def test_loop_closure_undoes_injected_drift(nominal, mode):
+    """A drifted, disconnected revisit of the last keyframes (copies with new points moved by a
+    known Sim(3)) is found by place recognition, verified by Sim(3) RANSAC and corrected."""
+    from slam.geometry import camera_center, correct_pose_by_sim3, sim3_matrix
+    from slam.map import Keyframe
+
+    cfg = SlamConfig(loop_closing=mode, loop_min_gap_keyframes=5, local_window=4)
+    with SlamSystem(nominal.camera, cfg) as s:
+        for i in range(N):
+            s.track(Frame(nominal.images[i], i / 30, i))
+        s.wait_mapping()
+        mapper = s.mapper
+        m = mapper.map
+        ang = np.deg2rad(3.0)
+        R = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+        depth = np.median([np.linalg.norm(p.p_slam) for p in m.points.values()])
+        S_drift = sim3_matrix(1.08, R, np.array([0.03, -0.02, 0.01]) * depth)
+        originals = m.kf_ids()[-3:]
+        dup: dict[int, int] = {}
+        copies = []
+        with m.lock:
+            for k in originals:
+                kf = m.keyframes[k]
+                kc = Keyframe(m.new_kf_id() + 1000, kf.t_s + 100, kf.seq + 100000,
+                              correct_pose_by_sim3(kf.T_cam_slam, S_drift), kf.uv_px, kf.desc,
+                              np.full(len(kf.point_ids), -1, np.int64))
+                m.add_keyframe(kc)
+                for f, pid in enumerate(kf.point_ids.tolist()):
+                    if pid < 0 or pid not in m.points:
+                        continue
+                    if pid not in dup:
+                        p = m.points[pid]
+                        dup[pid] = m.add_point(S_drift[:3, :3] @ p.p_slam + S_drift[:3, 3], p.desc, {kc.kf_id: f})
+                    else:
+                        m.points[dup[pid]].obs[kc.kf_id] = f
+                        kc.point_ids[f] = dup[pid]
+                copies.append(kc)
+        before = [np.linalg.norm(camera_center(c.T_cam_slam) - camera_center(m.keyframes[o].T_cam_slam))
+                  for c, o in zip(copies, originals)]
+        mapper._loop(copies[-1])
+        assert len(mapper.stats.loops) == 1 and mapper.stats.loops[0][1] == copies[-1].kf_id
+        assert mapper.stats.loops[0][0] in originals
+        after = [np.linalg.norm(camera_center(c.T_cam_slam) - camera_center(m.keyframes[o].T_cam_slam))
+                 for c, o in zip(copies, originals)]
+        assert max(after) < 0.2 * min(before), (before, after)
+        gen, S_corr = s.tracker.shared.correction
+        assert gen == 1 and np.allclose(S_corr @ S_drift, np.eye(4), atol=0.05)
