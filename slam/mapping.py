@@ -242,6 +242,8 @@ class LocalMapper:
         if extra <= 0:
             return
         m = self.map
+        if len(self._place) > self.config.max_keyframes * 1.1:
+            self._place.keep_only(set(ids[extra:]))
         with m.lock:
             for k in ids[:extra]:
                 kf = m.keyframes[k]

@@ -23,6 +23,7 @@ class PlaceIndex:
     def __init__(self, per_keyframe: int = 400, ratio: float = 0.8, max_dist: int = 64) -> None:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._kf_ids: list[int] = []
+        self._stored: dict[int, np.ndarray] = {}
         self.per_keyframe = per_keyframe
         self.ratio = ratio
         self.max_dist = max_dist
@@ -36,8 +37,18 @@ class PlaceIndex:
         return desc[np.linspace(0, len(desc) - 1, self.per_keyframe).astype(int)]
 
     def add(self, kf_id: int, desc: np.ndarray) -> None:
-        self._matcher.add([np.ascontiguousarray(self._subset(desc))])
+        sub = np.ascontiguousarray(self._subset(desc))
+        self._matcher.add([sub])
         self._kf_ids.append(kf_id)
+        self._stored[kf_id] = sub
+
+    def keep_only(self, kf_ids: set[int]) -> None:
+        """Forget every keyframe not in kf_ids (memory cap); rebuilds the matcher's train set."""
+        self._matcher.clear()
+        self._kf_ids = [k for k in self._kf_ids if k in kf_ids]
+        self._stored = {k: self._stored[k] for k in self._kf_ids}
+        if self._kf_ids:
+            self._matcher.add([self._stored[k] for k in self._kf_ids])
 
     def query(self, desc: np.ndarray, exclude_after_kf_id: int | None = None, top: int = 3) -> list[PlaceCandidate]:
         """Keyframes with the most votes, best first; keyframes with id > exclude_after_kf_id are skipped."""

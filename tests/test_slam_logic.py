@@ -178,3 +178,16 @@ def test_torch_and_cpu_features_both_match_a_warped_image():
         pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
         ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
         assert ok.sum() > 100 and ok.mean() > 0.8
+
+
+def test_place_index_forgets_dropped_keyframes():
+    rng = np.random.default_rng(5)
+    descs = [rng.integers(0, 256, (300, 32), dtype=np.uint8) for _ in range(4)]
+    idx = PlaceIndex()
+    for k, d in enumerate(descs):
+        idx.add(k, d)
+    assert idx.query(descs[1])[0].kf_id == 1
+    idx.keep_only({2, 3})
+    assert len(idx) == 2
+    assert all(c.kf_id in (2, 3) for c in idx.query(descs[1]))
+    assert idx.query(descs[3])[0].kf_id == 3
