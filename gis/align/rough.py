@@ -10,9 +10,14 @@ around the rough position, ENU metres):
 2. Corners: each building's minimum-area rectangle (OpenCV ``minAreaRect``) at roof height.
 3. Eq. 2 with RANSAC over correspondences: a hypothesis pairs one of the largest SLAM buildings
    with a GIS building (origin = that building's centroid, the paper's "largest building"
-   origin), scale from the footprint ratio, yaw from the rectangle orientation (4 options); the
-   σ(i) of Eq. 2 are nearest corners, and the inliers are re-solved in closed form (Umeyama,
-   gis.sim3.umeyama). The hypothesis with most corner inliers (then least residual) wins.
+   origin), scale from the footprint ratio, yaw from the rectangle orientation (4 options) or a
+   5° grid (a partly seen building's rectangle can be tilted). Hypotheses are scored by the
+   fraction of the survey cloud within score_m of the model; the best is refined by Eq. 2 with
+   σ(i) = nearest corners, solved in closed form (Umeyama, gis.sim3.umeyama), if that raises the
+   score. Below min_score the alignment is refused.
+4. Optional polish (``refine``, beyond the paper): the scale-aware point-to-plane ICP of
+   gis.align.fine on the whole survey cloud, kept only if it passes its gates and lowers the
+   point-to-model error.
 """
 from __future__ import annotations
 
@@ -26,10 +31,13 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from gis.align.fine import enu_sim3
-from gis.model import GisModel
+from gis.model import BUILDING, GROUND, GisModel
 from gis.sim3 import Sim3, compose, umeyama
 
 log = logging.getLogger(__name__)
+
+
+YAW_GRID_RAD = np.radians(np.arange(0.0, 360.0, 5.0))
 
 
 class RoughAlignmentFailed(RuntimeError):
@@ -53,22 +61,25 @@ class RoughResult:
     error_m: float           # mean point-to-model distance of the survey cloud (TerraSLAM Table 4)
 
 
-def level_and_segment(p: np.ndarray, unit: float) -> tuple[Sim3, list[Building]]:
+def level_and_segment(p: np.ndarray, unit: float, ground: np.ndarray | None = None,
+                      candidates: np.ndarray | None = None) -> tuple[Sim3, list[Building]]:
     """Ground plane → levelling similarity (up = +z, ground at z = 0) and building rectangles.
 
     unit: length scale of the cloud (its median point spacing); thresholds are multiples of it.
+    ground / candidates: boolean masks from known labels (GIS models); when not given the
+    ground is the dominant RANSAC plane and the candidates are the points above it.
     """
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     o3d.utility.random.seed(0)
-    plane, ground = pcd.segment_plane(distance_threshold=2 * unit, ransac_n=3, num_iterations=2000)
+    sel = np.flatnonzero(ground) if ground is not None else np.arange(len(p))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[sel]))
+    plane, inl = pcd.segment_plane(distance_threshold=2 * unit, ransac_n=3, num_iterations=2000)
     n = np.asarray(plane[:3], float)
     d = float(plane[3]) / np.linalg.norm(n)
     n = n / np.linalg.norm(n)
-    rest = np.delete(np.arange(len(p)), ground)
+    rest = np.delete(np.arange(len(p)), sel[inl]) if candidates is None else np.flatnonzero(candidates)
     if len(rest) and np.median(p[rest] @ n + d) < 0:
         n, d = -n, -d
-    R = _rotation_to_z(n)
-    T_lev = Sim3(1.0, R, np.array([0.0, 0.0, d]))  # z = n·p + d after rotation
+    T_lev = Sim3(1.0, _rotation_to_z(n), np.array([0.0, 0.0, d]))  # z = n·p + d after rotation
     q = T_lev.apply(p)
     above = rest[q[rest, 2] > 3 * unit]
     if len(above) < 10:
@@ -90,7 +101,8 @@ def level_and_segment(p: np.ndarray, unit: float) -> tuple[Sim3, list[Building]]
 
 
 def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray, radius_m: float = 250.0,
-                top_k: int = 3, progress: Callable[[str], None] | None = None) -> RoughResult:
+                top_k: int = 3, progress: Callable[[str], None] | None = None, refine: bool = True,
+                score_m: float = 1.5, min_score: float = 0.5) -> RoughResult:
     """T_rough mapping the survey cloud (SLAM frame) to ECEF; RoughAlignmentFailed if none fits."""
     say = progress or (lambda s: log.info(s))
     p_s = np.asarray(cloud_slam, float)
@@ -105,38 +117,79 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
     if len(p_g) < 200:
         raise RoughAlignmentFailed(f"GIS model has only {len(p_g)} points within {radius_m} m of the rough position")
     say(f"segmenting the GIS model crop ({len(p_g)} points)")
-    T_lev_g, b_g = level_and_segment(p_g, _spacing(p_g))
+    lab_g = model.labels[idx]
+    if np.sum(lab_g == BUILDING) >= 100 and np.sum(lab_g == GROUND) >= 100:  # labelled model: use its classes
+        T_lev_g, b_g = level_and_segment(p_g, _spacing(p_g), lab_g == GROUND, lab_g == BUILDING)
+    else:
+        T_lev_g, b_g = level_and_segment(p_g, _spacing(p_g))
     if not b_s or not b_g:
         raise RoughAlignmentFailed(f"buildings found: survey {len(b_s)}, GIS {len(b_g)}; need at least one in each")
     corners_s = np.concatenate([b.corners for b in b_s])
     corners_g = np.concatenate([b.corners for b in b_g])
     tree = cKDTree(corners_g)
+    # Hypotheses are ranked by how much of the survey cloud lands on the model (fraction of a
+    # subsample within score_m of a GIS point, levelled frames); corner counts alone favour
+    # wrong hypotheses in regular city blocks.
+    sample_s = T_lev_s.apply(p_s[:: max(1, len(p_s) // 1000)])
+    tree_g = cKDTree(T_lev_g.apply(p_g))
     best = None
-    say(f"RANSAC over {min(top_k, len(b_s))}×{len(b_g)} building pairs × 4 yaws")
+    say(f"RANSAC over {min(top_k, len(b_s))}×{len(b_g)} building pairs × {4 + len(YAW_GRID_RAD)} yaws")
     for bs in b_s[:top_k]:
         for bg in b_g:
             s = np.sqrt(bg.area / bs.area)
             if not 0.5 < (bg.height / (s * bs.height)) < 2.0:
                 continue
-            for k in range(4):
-                yaw = bg.angle_rad - bs.angle_rad + k * np.pi / 2
+            # rectangle orientations (4 options) and, since a partly seen building's rectangle can
+            # be tilted, a 5° grid of yaws; scored hypotheses are cheap (one KD-tree query)
+            for yaw in np.concatenate([bg.angle_rad - bs.angle_rad + np.arange(4) * np.pi / 2, YAW_GRID_RAD]):
                 c, sn = np.cos(yaw), np.sin(yaw)
                 Rz = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
                 t = bg.centroid - s * Rz @ bs.centroid
-                t[2] = bg.centroid[2] - s * bs.centroid[2]
                 T = Sim3(s, Rz, t)
-                T, n_in, rmse = _refine_on_corners(T, corners_s, corners_g, tree, thresh=max(2.0, 0.15 * np.sqrt(bg.area)))
-                if T is not None and (best is None or (n_in, -rmse) > (best[1], -best[2])):
-                    best = (T, n_in, rmse)
-    if best is None or best[1] < 4:
-        raise RoughAlignmentFailed("no building correspondence hypothesis had 4 or more consistent corners")
-    T_levg_levs, n_in, rmse = best
+                score = float(np.mean(tree_g.query(T.apply(sample_s), distance_upper_bound=score_m)[0] < score_m))
+                if best is None or score > best[3]:
+                    best = (T, 0, float("nan"), score, bg)
+    if best is None:
+        raise RoughAlignmentFailed("no building pair had a consistent height/footprint ratio")
+    # Eq. 2 on nearest corners from the best hypothesis; kept if more of the cloud lands on the model
+    T_ref, n_in, rmse = _refine_on_corners(best[0], corners_s, corners_g, tree, thresh=max(2.0, 0.15 * np.sqrt(best[4].area)))
+    if T_ref is not None and n_in >= 4:
+        score = float(np.mean(tree_g.query(T_ref.apply(sample_s), distance_upper_bound=score_m)[0] < score_m))
+        if score >= best[3]:
+            best = (T_ref, n_in, rmse, score, best[4])
+    T_levg_levs, n_in, rmse, score, _ = best
+    say(f"best hypothesis: {100 * score:.0f} % of the survey cloud within {score_m} m of the model")
+    if score < min_score:
+        raise RoughAlignmentFailed(f"best hypothesis puts only {100 * score:.0f} % of the survey cloud on the model (< {100 * min_score:.0f} %)")
     # T_enu_slam = T_levg⁻¹ ∘ T_levg_levs ∘ T_levs
     T_enu_slam = compose(compose(T_lev_g.inverse(), T_levg_levs), T_lev_s)
     T_ecef_slam = compose(enu_sim3(model.origin), T_enu_slam)
     err = alignment_error_m(T_enu_slam.apply(p_s), model)
-    say(f"T_rough: {n_in} corner inliers, corner RMSE {rmse:.2f} m, mean point-to-model {err:.2f} m")
+    say(f"corners: {n_in} inliers, corner RMSE {rmse:.2f} m, mean point-to-model {err:.2f} m")
+    if refine:
+        T_ecef_slam, err = _refine_icp(p_s, model, T_ecef_slam, radius_m, err, say)
     return RoughResult(T_ecef_slam, n_in, rmse, err)
+
+
+def _refine_icp(p_s: np.ndarray, model: GisModel, T_ecef_slam: Sim3, radius_m: float, err: float, say) -> tuple[Sim3, float]:
+    """Polish the corner solution with the scale-aware point-to-plane ICP of gis.align.fine on the
+    whole survey cloud (large crop, wide first correspondence distance); kept only if it passes
+    the fine-tuner's gates and lowers the point-to-model error."""
+    from gis.align.fine import FineTuner
+    from gis.config import AlignmentConfig
+    from gis.types import Alignment, AlignmentSource
+
+    cfg = AlignmentConfig(crop_size_m=min(2 * radius_m, 5000), max_correspondence_m=6.0, robust_kernel_m=1.0,
+                          inlier_distance_m=1.0, max_jump_m=10.0, fpfh_fallback=False, min_fitness=0.5)
+    a0 = Alignment(T_ecef_slam, AlignmentSource.ROUGH, 0.0, 0, np.eye(6), 1.0)
+    reg = FineTuner(model, cfg).register(p_s, a0, 0.0, 0)
+    if reg.alignment is None:
+        say(f"ICP polish rejected ({reg.reason}); keeping the corner solution")
+        return T_ecef_slam, err
+    T_enu_slam = compose(enu_sim3(model.origin).inverse(), reg.alignment.T_ecef_slam)
+    err2 = alignment_error_m(T_enu_slam.apply(p_s), model)
+    say(f"ICP polish: mean point-to-model {err:.2f} → {err2:.2f} m")
+    return (reg.alignment.T_ecef_slam, err2) if err2 < err else (T_ecef_slam, err)
 
 
 def alignment_error_m(p_enu: np.ndarray, model: GisModel) -> float:
