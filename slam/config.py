@@ -32,7 +32,7 @@ class SlamConfig(BaseModel):
     reset_after_lost_frames: int = Field(90, ge=1, le=100000, description="frames lost before the map is abandoned and re-initialized (reset_counter+1)")
     # mapping
     local_map_keyframes: int = Field(20, ge=2, le=500, description="keyframes whose points form the tracker's local map")
-    ba_iterations: int = Field(8, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
+    ba_iterations: int = Field(5, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
     max_reproj_px: float = Field(3.0, gt=0, le=20, description="observations above this reprojection error after BA are dropped (px)")
     max_keyframes: int = Field(400, ge=20, le=100000, description="keyframe cap: the oldest keyframes' descriptors are dropped beyond it to keep memory flat")
     # loop closing

@@ -72,8 +72,8 @@ class LocalMapper:
         self._thread.join(timeout=30)
         self._ba.close()
 
-    def idle(self) -> bool:
-        return self._inbox.empty() and not self.shared.mapping_busy
+    def pending(self) -> int:
+        return self._inbox.qsize()
 
     def wait_idle(self, timeout_s: float = 60.0) -> bool:
         """For offline use/tests: wait until queued keyframes are processed."""
@@ -118,7 +118,9 @@ class LocalMapper:
             ids = m.kf_ids()
         self._triangulate(kf, ids)
         self._cull(kf, ids)
-        self._local_ba(kf, ids)
+        self._publish_local_map(ids)  # new points reach the tracker before the (slow) BA
+        if self._inbox.empty():  # like ORB-SLAM's BA abort: a waiting keyframe first gets its points
+            self._local_ba(kf, ids)
         self._publish(ids, kf)
         self.stats.local_mapping_ms.append((time.perf_counter() - t0) * 1e3)
         if c.loop_closing != "off":
@@ -161,7 +163,7 @@ class LocalMapper:
         prev = [self.map.keyframes[i].center for i in ids[:-1][-w:]]
         win = plm_window(np.array(prev), kf.center, w) if c.progressive_local_mapping and len(prev) >= 2 else w
         self.stats.ba_window.append(win)
-        res = self._run_ba(ids[-win:], max_fixed=w)
+        res = self._run_ba(ids[-win:], max_fixed=max(2, w // 2))
         if res is not None:
             self.stats.local_ba_ms.append(res.solve_ms)
 
@@ -215,12 +217,16 @@ class LocalMapper:
         self._changed = pids
         return res
 
+    def _publish_local_map(self, ids: list[int]) -> None:
+        with self.map.lock:
+            self._lm_version += 1
+            self.shared.local_map = self.map.local_map(ids[-self.config.local_map_keyframes:], self._lm_version)
+
     def _publish(self, ids: list[int], kf: Keyframe) -> None:
         m = self.map
         c = self.config
+        self._publish_local_map(ids)
         with m.lock:
-            self._lm_version += 1
-            self.shared.local_map = m.local_map(ids[-c.local_map_keyframes:], self._lm_version)
             upd_ids = [p for p in getattr(self, "_changed", []) if p in m.points]
             upd_ids += [int(p) for p in kf.point_ids if p >= 0 and p in m.points]
             upd_ids = sorted(set(upd_ids))

@@ -43,6 +43,7 @@ class SlamSystem:
         if self._last_seq is not None and frame.seq <= self._last_seq:
             raise ValueError(f"frame seq must increase: got {frame.seq} after {self._last_seq}")
         self._last_seq = frame.seq
+        self.tracker.shared.pending_keyframes = self.mapper.pending()
         res = self.tracker.track(frame)
         if res.reset_map is not None:
             self.reset_counter += 1

@@ -66,6 +66,7 @@ class Shared:
     local_map: LocalMap | None = None
     correction: tuple[int, np.ndarray] = (0, np.eye(4))  # (generation, S_new_old) from loop closing
     mapping_busy: bool = False
+    pending_keyframes: int = 0  # keyframes queued for local mapping (set by the system)
 
 
 @dataclass
@@ -131,7 +132,7 @@ class Tracker:
         need = (self.frames_since_kf >= c.max_frames_between_keyframes
                 or (n < c.keyframe_inlier_ratio * self.ref_kf_points and self.frames_since_kf >= c.min_frames_between_keyframes
                     and not self.shared.mapping_busy)
-                or (n < 2 * c.min_inliers and self.frames_since_kf >= 1))
+                or (n < 2 * c.min_inliers and self.frames_since_kf >= 1 and self.shared.pending_keyframes < 2))
         if need:
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
