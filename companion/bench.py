@@ -529,6 +529,11 @@ def markdown_summary(fig: dict) -> str:
         lines += ["", "## Ablation (cf. TerraSLAM Fig. 14)", "", "| config | latency mean / P99 [ms] | 3D error mean / P99 [m] |", "|---|---|---|"]
         lines += [f"| {r['config']} | {_fmt(r['frame_latency_ms']['mean'], 1)} / {_fmt(r['frame_latency_ms']['p99'], 1)} | "
                   f"{_fmt(r['global_error_m']['mean'])} / {_fmt(r['global_error_m']['p99'])} |" for r in fig["ablation"]]
+    if fig.get("finetune_map_size_sweep"):
+        lines += ["", "## Fine-tuning cost vs GIS map size (gis.bench.size_sweep)", "",
+                  "| area [km²] | model points | median / P90 [ms] | ratio to first |", "|---|---|---|---|"]
+        lines += [f"| {r['area_km2']:g} | {r['n_model_points']} | {r['median_ms']:.1f} / {r['p90_ms']:.1f} | {r['ratio']:.2f} |"
+                  for r in fig["finetune_map_size_sweep"]]
     if fig["reasons"]:
         lines += ["", "Not applicable / missing:", ""] + [f"- `{k}`: {v}" for k, v in fig["reasons"].items()]
     return "\n".join(lines) + "\n"

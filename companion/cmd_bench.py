@@ -64,5 +64,5 @@ def bench(
                                    ablation=ablation, sweep_extents_m=extents, progress=progress)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
-    console.print(suite_table(figs) if suite else markdown_summary(fig), markup=False)
-    console.print(f"Outputs in {out}/")
+    typer.echo(suite_table(figs) if suite else markdown_summary(fig))  # plain: Markdown tables must not wrap
+    typer.echo(f"Outputs in {out}/")
