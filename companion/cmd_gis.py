@@ -105,7 +105,8 @@ def gis_fetch(
 @app.command("align-offline")
 def align_offline(
     dataset: Path = typer.Argument(..., help="dataset directory (docs/DATASET.md) of the survey flight"),
-    cloud: Optional[Path] = typer.Option(None, "--cloud", help="dense survey cloud in the SLAM frame (PLY); default DATASET/survey_cloud.ply"),
+    cloud: Optional[Path] = typer.Option(None, "--cloud", help="dense survey cloud in the SLAM frame (PLY); default: COLMAP SfM on the dataset frames"),
+    stride: int = typer.Option(4, "--stride", min=1, help="use every n-th frame for the COLMAP reconstruction"),
     radius_m: float = typer.Option(250.0, "--radius-m", help="GIS search radius around the rough position"),
     site: Optional[str] = typer.Option(None, "--site", help="site id (default: the dataset name)"),
     config: Optional[Path] = _CONFIG,
@@ -113,8 +114,9 @@ def align_offline(
 ) -> None:
     """Compute T_rough for a site from a survey (TerraSLAM §4.3) and store it in the GIS cache.
 
-    The dense SLAM-frame survey cloud must be given (--cloud or DATASET/survey_cloud.ply);
-    building it from the survey frames is not done by this command yet.
+    Without --cloud, the survey cloud is a COLMAP (pycolmap) SfM reconstruction of the dataset's
+    frames (minutes); it is written to DATASET/survey_cloud.ply. T_rough then maps that
+    reconstruction's frame to ECEF.
     """
     import numpy as np
     import open3d as o3d
@@ -131,12 +133,25 @@ def align_offline(
         ds = read_dataset(dataset)
     except DatasetError as e:
         fail(str(e))
-    cloud = cloud or dataset / "survey_cloud.ply"
-    if not cloud.is_file():
-        fail(f"{cloud}: no dense survey cloud (SLAM frame, PLY); pass --cloud")
-    p_slam = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
-    if len(p_slam) == 0:
-        fail(f"{cloud}: no points could be read")
+    if cloud is None:
+        from gis.align.survey import SurveyReconstructionFailed, reconstruct_survey
+
+        if ds.camera.is_distorted:
+            fail(f"{dataset}: COLMAP here assumes undistorted frames; undistort them or pass --cloud")
+        names = [p.name for p in ds.frame_paths][::stride]
+        with console.status("COLMAP survey reconstruction") as status:
+            try:
+                survey = reconstruct_survey(ds.frame_paths[0].parent, names, ds.camera.K, dataset / "colmap",
+                                            progress=lambda s: (status.update(s), console.print(s)))
+            except SurveyReconstructionFailed as e:
+                fail(f"{dataset}: {e}")
+        cloud = dataset / "survey_cloud.ply"
+        o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(survey.points)))
+        p_slam = survey.points
+    else:
+        p_slam = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
+        if len(p_slam) == 0:
+            fail(f"{cloud}: no points could be read")
     model, errors = None, []
     for f in ds.gis_files:
         try:

@@ -12,7 +12,7 @@ around the rough position, ENU metres):
    with a GIS building (origin = that building's centroid, the paper's "largest building"
    origin), scale from the footprint ratio, yaw from the rectangle orientation (4 options) or a
    5° grid (a partly seen building's rectangle can be tilted). Hypotheses are scored by the
-   fraction of the survey cloud within score_m of the model; the best is refined by Eq. 2 with
+   fraction of the survey cloud's structures within score_m of the model; the best is refined by Eq. 2 with
    σ(i) = nearest corners, solved in closed form (Umeyama, gis.sim3.umeyama), if that raises the
    score. Below min_score the alignment is refused.
 4. Optional polish (``refine``, beyond the paper): the scale-aware point-to-plane ICP of
@@ -127,10 +127,12 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
     corners_s = np.concatenate([b.corners for b in b_s])
     corners_g = np.concatenate([b.corners for b in b_g])
     tree = cKDTree(corners_g)
-    # Hypotheses are ranked by how much of the survey cloud lands on the model (fraction of a
-    # subsample within score_m of a GIS point, levelled frames); corner counts alone favour
-    # wrong hypotheses in regular city blocks.
-    sample_s = T_lev_s.apply(p_s[:: max(1, len(p_s) // 1000)])
+    # Hypotheses are ranked by how much of the survey cloud's above-ground part lands on the
+    # model (fraction of a subsample within score_m of a GIS point, levelled frames); corner
+    # counts alone favour wrong hypotheses in regular city blocks.
+    q_s = T_lev_s.apply(p_s)
+    q_s = q_s[q_s[:, 2] > 3 * unit_s]  # structures only: ground lands on ground in any hypothesis
+    sample_s = q_s[:: max(1, len(q_s) // 1000)]
     tree_g = cKDTree(T_lev_g.apply(p_g))
     best = None
     say(f"RANSAC over {min(top_k, len(b_s))}×{len(b_g)} building pairs × {4 + len(YAW_GRID_RAD)} yaws")
@@ -158,9 +160,9 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
         if score >= best[3]:
             best = (T_ref, n_in, rmse, score, best[4])
     T_levg_levs, n_in, rmse, score, _ = best
-    say(f"best hypothesis: {100 * score:.0f} % of the survey cloud within {score_m} m of the model")
+    say(f"best hypothesis: {100 * score:.0f} % of the survey structures within {score_m} m of the model")
     if score < min_score:
-        raise RoughAlignmentFailed(f"best hypothesis puts only {100 * score:.0f} % of the survey cloud on the model (< {100 * min_score:.0f} %)")
+        raise RoughAlignmentFailed(f"best hypothesis puts only {100 * score:.0f} % of the survey structures on the model (< {100 * min_score:.0f} %)")
     # T_enu_slam = T_levg⁻¹ ∘ T_levg_levs ∘ T_levs
     T_enu_slam = compose(compose(T_lev_g.inverse(), T_levg_levs), T_lev_s)
     T_ecef_slam = compose(enu_sim3(model.origin), T_enu_slam)
