@@ -132,14 +132,14 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
     # counts alone favour wrong hypotheses in regular city blocks.
     q_s = T_lev_s.apply(p_s)
     q_s = q_s[q_s[:, 2] > 3 * unit_s]  # structures only: ground lands on ground in any hypothesis
-    sample_s = q_s[:: max(1, len(q_s) // 1000)]
+    sample_s = q_s[:: max(1, len(q_s) // 500)]
     tree_g = cKDTree(T_lev_g.apply(p_g))
     best = None
     say(f"RANSAC over {min(top_k, len(b_s))}×{len(b_g)} building pairs × {4 + len(YAW_GRID_RAD)} yaws")
     for bs in b_s[:top_k]:
         for bg in b_g:
             s = np.sqrt(bg.area / bs.area)
-            if not 0.5 < (bg.height / (s * bs.height)) < 2.0:
+            if not 0.67 < (bg.height / (s * bs.height)) < 1.5:
                 continue
             # rectangle orientations (4 options) and, since a partly seen building's rectangle can
             # be tilted, a 5° grid of yaws; scored hypotheses are cheap (one KD-tree query)
