@@ -74,6 +74,7 @@ class RunResult:
     loops: list[tuple[int, int]]
     n_points: int
     rss_mb: list[float] = field(default_factory=list)
+    dropped: int = 0  # frames skipped because tracking was more than a frame period late
 
     @property
     def tracking_ratio(self) -> float:
@@ -101,14 +102,23 @@ def ate_after_sim3(est: np.ndarray, truth: np.ndarray) -> tuple[float, float, fl
 
 
 def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bool = True,
-                 blackout: tuple[int, int] | None = None, order: np.ndarray | None = None) -> RunResult:
+                 blackout: tuple[int, int] | None = None, order: np.ndarray | None = None,
+                 drop_late: bool = False) -> RunResult:
     """Feed the sequence to a SlamSystem. blackout=(first, count) replaces frames with black images
-    (a forced tracking loss); ``order`` replays frame indices in a custom order (e.g. out and back)."""
+    (a forced tracking loss); ``order`` replays frame indices in a custom order (e.g. out and back).
+    realtime: frames are due at the scenario's frame rate; drop_late: a frame more than one period
+    late is skipped, as a live camera source that keeps only the newest frame would."""
     proc = psutil.Process()
     order = np.arange(len(seq.images)) if order is None else order
     ms, cpu, states, est, tru, rss = [], [], [], [], [], []
+    dropped = 0
+    t_start = time.perf_counter()
     with SlamSystem(seq.camera, config) as s:
         for n, i in enumerate(order):
+            due = t_start + n / seq.fps
+            if drop_late and time.perf_counter() > due + 1 / seq.fps:
+                dropped += 1
+                continue
             img = seq.images[i]
             if blackout and blackout[0] <= n < blackout[0] + blackout[1]:
                 img = np.zeros_like(img)
@@ -123,14 +133,14 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
             if n % 100 == 0:
                 rss.append(proc.memory_info().rss / 2**20)
             if realtime:
-                time.sleep(max(0.0, 1 / seq.fps - pose.tracking_ms / 1e3))
+                time.sleep(max(0.0, due + 1 / seq.fps - time.perf_counter()))
             s.poll_map_updates()
         s.wait_mapping()
         st = s.mapper.stats
         return RunResult(name, np.array(ms), np.array(cpu), states, np.array(est).reshape(-1, 3),
                          np.array(tru).reshape(-1, 3), s.reset_counter, list(st.local_mapping_ms),
                          list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms), list(st.loops),
-                         len(s.mapper.map.points), rss)
+                         len(s.mapper.map.points), rss, dropped)
 
 
 def ablation_configs(base: SlamConfig) -> list[tuple[str, SlamConfig]]:
@@ -150,7 +160,8 @@ def report(r: RunResult) -> str:
     rmse, length, pct = r.ate()
     lines = [
         f"[{r.name}] frames {len(r.states)}  tracked {100 * r.tracking_ratio:.1f} % (after init {100 * r.ratio_after_init:.1f} %)"
-        f"  resets {r.reset_counter}  relocalized {sum(s == TrackingState.RELOCALIZED for s in r.states)}",
+        f"  resets {r.reset_counter}  relocalized {sum(s == TrackingState.RELOCALIZED for s in r.states)}"
+        f"  dropped late {r.dropped}",
         f"  tracking wall ms: mean {r.tracking_ms.mean():.1f}  P99 {_p(r.tracking_ms, 99):.1f}   "
         f"tracking-thread CPU ms: mean {r.tracking_cpu_ms.mean():.1f}  P99 {_p(r.tracking_cpu_ms, 99):.1f}",
         f"  ATE after Sim(3): {rmse:.3f} m over {length:.1f} m path = {pct:.2f} %",
@@ -175,6 +186,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="cpu", help="torch device for the torch backend")
     ap.add_argument("--cache-dir", default=os.path.expanduser("~/.cache/terraslam/slam_bench"))
     ap.add_argument("--no-realtime", action="store_true", help="feed frames as fast as possible")
+    ap.add_argument("--drop-late", action="store_true", help="skip frames tracking is too late for (live camera)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir)
@@ -185,7 +197,7 @@ def main(argv: list[str] | None = None) -> None:
     results = []
     for name, cfg in runs:
         cfg = cfg.model_copy(update=dict(torch_device=a.device))
-        r = run_sequence(seq, cfg, name, realtime=not a.no_realtime, blackout=blackout)
+        r = run_sequence(seq, cfg, name, realtime=not a.no_realtime, blackout=blackout, drop_late=a.drop_late)
         print(report(r), flush=True)
         results.append(r)
     if a.ablation:

@@ -218,6 +218,8 @@ class LocalMapper:
         return res
 
     def _publish_local_map(self, ids: list[int]) -> None:
+        if self.shared.active_map is not self.map:
+            return  # the tracker has already reset to a new map
         with self.map.lock:
             self._lm_version += 1
             self.shared.local_map = self.map.local_map(ids[-self.config.local_map_keyframes:], self._lm_version)
@@ -354,11 +356,8 @@ class LocalMapper:
         self._publish_full()
 
     def _publish_full(self) -> None:
-        m = self.map
-        with m.lock:
-            ids = m.kf_ids()
-            self._lm_version += 1
-            self.shared.local_map = m.local_map(ids[-self.config.local_map_keyframes:], self._lm_version)
+        with self.map.lock:
+            self._publish_local_map(self.map.kf_ids())
             self.updates.put(self._snapshot(full=True))
 
     def _snapshot(self, full: bool) -> MapUpdate:

@@ -67,6 +67,7 @@ class Shared:
     correction: tuple[int, np.ndarray] = (0, np.eye(4))  # (generation, S_new_old) from loop closing
     mapping_busy: bool = False
     pending_keyframes: int = 0  # keyframes queued for local mapping (set by the system)
+    active_map: object = None  # the tracker's current SlamMap; mapping publishes only for this one
 
 
 @dataclass
@@ -219,8 +220,12 @@ class Tracker:
                         return self._accept(frame, feats, est, TrackingState.RELOCALIZED)
         return TrackResult(TrackingState.LOST, self.T_last, 0)
 
+    def __post_init__(self) -> None:
+        self.shared.active_map = self.map
+
     def _reset(self, frame: Frame, feats: Features) -> TrackResult:
         self.map = SlamMap()
+        self.shared.active_map = self.map
         self.shared.local_map = None
         self.state = TrackingState.INITIALIZING
         self._init = None

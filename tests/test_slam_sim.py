@@ -124,3 +124,10 @@ def test_loop_closure_undoes_injected_drift(nominal, mode):
         assert max(after) < 0.2 * min(before), (before, after)
         gen, S_corr = s.tracker.shared.correction
         assert gen == 1 and np.allclose(S_corr @ S_drift, np.eye(4), atol=0.05)
+
+
+def test_long_loss_resets_the_map_and_reinitializes(nominal):
+    r = run_sequence(nominal, SlamConfig(reset_after_lost_frames=15), "reset", blackout=(60, 25))
+    assert r.reset_counter == 1  # a new SLAM frame: downstream must drop its alignment
+    assert r.states[60] == TrackingState.LOST and r.states[80] == TrackingState.INITIALIZING
+    assert any(s == TrackingState.OK for s in r.states[85:])
