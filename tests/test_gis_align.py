@@ -176,3 +176,16 @@ def test_globalizer_against_truth_on_simulated_flight(city):
     assert errs.mean() < 0.15 and np.percentile(errs, 99) < 0.5
     e_h, s_h = np.asarray(sig_h).T
     assert np.mean(e_h > 3 * s_h) <= 0.01
+
+
+def test_fpfh_fallback_never_accepts_a_wrong_pose(city):
+    """Opt-in FPFH retry after a failed ICP: whatever it finds must pass the same gates."""
+    c = np.array([20.0, -10, 0])
+    p_slam = _slam(slam_like_cloud(city, c, 60, 3000, noise_m=0.05, seed=2))
+    reg = FineTuner(city, AlignmentConfig(fpfh_fallback=True, max_jump_m=10.0)).register(
+        p_slam, _perturbed(dscale=1.0, drot_deg=(10.0, 0, 0), dt=(4.0, 3.0, 0.0)), 1.0, 0, center_slam=_slam(c))
+    if reg.alignment is not None:
+        err = np.linalg.norm(reg.alignment.T_ecef_slam.apply(p_slam) - T_ECEF_SLAM.apply(p_slam), axis=1)
+        assert err.mean() < 0.1
+    else:
+        assert reg.reason

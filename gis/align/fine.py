@@ -10,8 +10,10 @@ not grow with the model), voxel-downsample both clouds, then a scale-aware point
   point-to-plane cost of digital-twin Eq. 2 with a Tukey robust kernel (IRLS). Its Jacobian row
   is Eq. 9's A_j extended by the scale column n_j·a_j. Written by hand because no library here
   does point-to-plane with scale; it is 15 lines of vectorised numpy.
-- Poor guess: if ICP fails the gates, retry from open3d's FPFH + RANSAC global registration
-  (§4.4 "ICP with FPFH features and normals"), then ICP again; the same gates apply.
+- Poor guess (opt-in, ``fpfh_fallback``): if ICP fails the gates, retry from open3d's FPFH +
+  RANSAC global registration (§4.4 "ICP with FPFH features and normals"), then ICP again; the
+  same gates apply. Off by default: it costs seconds, and with a sparse SLAM cloud against a
+  dense model of a regular city the FPFH matches were wrong in our trials (tens of metres).
 - Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE, jump of
   the map centre, and degeneracy: covariance σ²·H⁻¹ from the ICP Hessian H = Σ A_jᵀA_j (Eq. 8–9)
   along its weakest position / rotation / scale direction; a single straight facade leaves a
