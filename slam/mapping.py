@@ -57,6 +57,7 @@ class LocalMapper:
         self._lm_version = 0
         self._correction_gen = 0
         self._loop_cooldown_until = 0
+        self._pending_ba = None
         self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
         self._thread.start()
 
@@ -79,7 +80,7 @@ class LocalMapper:
         """For offline use/tests: wait until queued keyframes are processed."""
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            if self._inbox.empty() and not self._working:
+            if self._inbox.empty() and not self._working and self._pending_ba is None:
                 return True
             time.sleep(0.01)
         return False
@@ -89,12 +90,17 @@ class LocalMapper:
 
     def _run(self) -> None:
         while True:
-            item = self._inbox.get()
+            try:
+                item = self._inbox.get(timeout=0.005 if self._pending_ba is not None else None)
+            except queue.Empty:
+                self._finish_ba(wait=False)
+                continue
             if item is _STOP:
                 return
             self._working = True
             try:
                 if isinstance(item, _Reset):
+                    self._finish_ba(wait=True)
                     self.map = item.new_map
                     self._place = PlaceIndex()
                     self.reset_counter += 1
@@ -116,15 +122,14 @@ class LocalMapper:
                 if pid >= 0:
                     m.points[pid].desc = kf.desc[i]
             ids = m.kf_ids()
+        self._finish_ba(wait=False)
         self._triangulate(kf, ids)
         self._cull(kf, ids)
-        self._publish_local_map(ids)  # new points reach the tracker before the (slow) BA
-        if self._inbox.empty():  # like ORB-SLAM's BA abort: a waiting keyframe first gets its points
-            self._local_ba(kf, ids)
+        self._local_ba(kf, ids)  # submitted to the worker; applied when done (_finish_ba)
         self._publish(ids, kf)
         self.stats.local_mapping_ms.append((time.perf_counter() - t0) * 1e3)
         if c.loop_closing != "off":
-            self._loop(kf)
+            self._loop(kf)  # waits for the in-flight local BA before moving the map
         self._forget_old(ids)
 
     # --- local mapping --------------------------------------------------------------------------
@@ -162,14 +167,48 @@ class LocalMapper:
         w = c.local_window
         prev = [self.map.keyframes[i].center for i in ids[:-1][-w:]]
         win = plm_window(np.array(prev), kf.center, w) if c.progressive_local_mapping and len(prev) >= 2 else w
-        self.stats.ba_window.append(win)
-        res = self._run_ba(ids[-win:], max_fixed=max(2, w // 2))
-        if res is not None:
-            self.stats.local_ba_ms.append(res.solve_ms)
+        if self._pending_ba is not None:
+            return  # one local BA in flight at a time; this keyframe's points are mapped already
+        job = self._build_ba(ids[-win:], max_fixed=max(2, w // 2))
+        if job is not None:
+            self.stats.ba_window.append(win)
+            self._pending_ba = (self._ba.submit(job[0]), job, kf)
+
+    def _finish_ba(self, wait: bool) -> None:
+        """Apply the in-flight local BA once it is done (BA never holds up new keyframes' mapping)."""
+        if self._pending_ba is None:
+            return
+        fut, job, kf = self._pending_ba
+        if not (wait or fut.done()):
+            return
+        self._pending_ba = None
+        try:
+            res: BAResult = fut.result()
+        except Exception:
+            log.exception("bundle adjustment failed")
+            return
+        self._apply_ba(res, job)
+        self.stats.local_ba_ms.append(res.solve_ms)
+        with self.map.lock:
+            ids = self.map.kf_ids()
+        if ids:
+            self._publish(ids, kf)
 
     def _run_ba(self, kf_ids: list[int], max_fixed: int) -> BAResult | None:
-        """Build the BA problem for these keyframes (+ fixed neighbours), solve in the worker process,
-        write back and drop bad observations."""
+        """Synchronous BA (loop closing): build, solve in the worker process, write back."""
+        job = self._build_ba(kf_ids, max_fixed)
+        if job is None:
+            return None
+        try:
+            res: BAResult = self._ba.submit(job[0]).result()
+        except Exception:
+            log.exception("bundle adjustment failed")
+            return None
+        self._apply_ba(res, job)
+        return res
+
+    def _build_ba(self, kf_ids: list[int], max_fixed: int):
+        """BA problem for these keyframes (+ fixed neighbours that see their points)."""
         m = self.map
         c = self.config
         with m.lock:
@@ -197,14 +236,15 @@ class LocalMapper:
             prob = BAProblem(self.K, np.array([m.keyframes[k].T_cam_slam for k in all_ids]), fixed,
                              np.array([m.points[p].p_slam for p in pids]), np.array(o_pose), np.array(o_pt),
                              np.array(o_uv), max_iterations=c.ba_iterations)
-        try:
-            res: BAResult = self._ba.submit(prob).result()
-        except Exception:
-            log.exception("bundle adjustment failed")
-            return None
+        return prob, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose
+
+    def _apply_ba(self, res: BAResult, job) -> None:
+        """Write BA results back (skipping what was removed meanwhile) and drop bad observations."""
+        _, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose = job
+        c = self.config
         with m.lock:
             if m is not self.map:
-                return None
+                return
             for k, T in zip(all_ids, res.T_cam_slam):
                 if k in m.keyframes and not fixed[pose_idx[k]]:
                     m.keyframes[k].T_cam_slam = T
@@ -215,7 +255,6 @@ class LocalMapper:
             for b in bad:
                 m.remove_observation(pids[o_pt[b]], all_ids[o_pose[b]])
         self._changed = pids
-        return res
 
     def _publish_local_map(self, ids: list[int]) -> None:
         if self.shared.active_map is not self.map:
@@ -318,6 +357,7 @@ class LocalMapper:
     def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> None:
         """Move the current window by S, fuse the matched points, then BA: Algorithm 1 (recursive)
         or the whole loop at once (full) — same starting state, so the two are comparable."""
+        self._finish_ba(wait=True)
         c = self.config
         w = c.local_window
         m = self.map

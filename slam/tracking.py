@@ -114,10 +114,10 @@ class Tracker:
         if self.state == TrackingState.LOST:
             return self._relocalize(frame, feats)
         est = self._track_local_map(feats, self.T_vel @ self.T_last)
-        if est is None:
+        if est is None:  # lost: try relocalization on this very frame before reporting it
             self.state = TrackingState.LOST
-            self.lost_frames = 1
-            return TrackResult(TrackingState.LOST, self.T_last, 0)
+            self.lost_frames = 0
+            return self._relocalize(frame, feats)
         return self._accept(frame, feats, est, TrackingState.OK)
 
     # --- steps ----------------------------------------------------------------------------------
