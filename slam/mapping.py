@@ -31,6 +31,7 @@ class MappingStats:
     ba_window: list[int] = field(default_factory=list)
     loop_ms: list[float] = field(default_factory=list)  # loop correction (BA part), per closed loop
     loops: list[tuple[int, int]] = field(default_factory=list)  # (old kf id, current kf id)
+    loop_ba_keyframes: list[int] = field(default_factory=list)  # keyframes optimised per loop (all windows)
 
 
 @dataclass
@@ -388,9 +389,11 @@ class LocalMapper:
                 return [m.keyframes[k].center for k in ids]
 
         if c.loop_closing == "recursive":
-            recursive_loop_closing(start, cur, w, ba, centers)
+            windows = recursive_loop_closing(start, cur, w, ba, centers)
         else:
-            ba(list(range(start, cur + 1)))
+            windows = [list(range(start, cur + 1))]
+            ba(windows[0])
+        self.stats.loop_ba_keyframes.append(sum(len(x) for x in windows))
         self.stats.loop_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.loops.append((old_id, kf.kf_id))
         self._publish_full()

@@ -78,10 +78,10 @@ def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
 
 @pytest.mark.parametrize("mode", ["recursive", "full"])
 def test_loop_closure_undoes_injected_drift(nominal, mode):
-    """A drifted, disconnected revisit of the last keyframes (copies with new points moved by a
+    """A drifted, disconnected revisit of earlier keyframes (copies with new points moved by a
     known Sim(3)) is found by place recognition, verified by Sim(3) RANSAC and corrected."""
-    from slam.geometry import camera_center, correct_pose_by_sim3, sim3_matrix
-    from slam.map import Keyframe
+    from slam.bench import inject_drifted_revisit
+    from slam.geometry import camera_center, sim3_matrix
 
     cfg = SlamConfig(loop_closing=mode, loop_min_gap_keyframes=5, local_window=4)
     with SlamSystem(nominal.camera, cfg) as s:
@@ -95,32 +95,17 @@ def test_loop_closure_undoes_injected_drift(nominal, mode):
         depth = np.median([np.linalg.norm(p.p_slam) for p in m.points.values()])
         S_drift = sim3_matrix(1.08, R, np.array([0.03, -0.02, 0.01]) * depth)
         originals = m.kf_ids()[-3:]
-        dup: dict[int, int] = {}
-        copies = []
-        with m.lock:
-            for k in originals:
-                kf = m.keyframes[k]
-                kc = Keyframe(m.new_kf_id() + 1000, kf.t_s + 100, kf.seq + 100000,
-                              correct_pose_by_sim3(kf.T_cam_slam, S_drift), kf.uv_px, kf.desc,
-                              np.full(len(kf.point_ids), -1, np.int64))
-                m.add_keyframe(kc)
-                for f, pid in enumerate(kf.point_ids.tolist()):
-                    if pid < 0 or pid not in m.points:
-                        continue
-                    if pid not in dup:
-                        p = m.points[pid]
-                        dup[pid] = m.add_point(S_drift[:3, :3] @ p.p_slam + S_drift[:3, 3], p.desc, {kc.kf_id: f})
-                    else:
-                        m.points[dup[pid]].obs[kc.kf_id] = f
-                        kc.point_ids[f] = dup[pid]
-                copies.append(kc)
-        before = [np.linalg.norm(camera_center(c.T_cam_slam) - camera_center(m.keyframes[o].T_cam_slam))
-                  for c, o in zip(copies, originals)]
+        copies = inject_drifted_revisit(s, originals, S_drift)
+
+        def gaps():
+            return [np.linalg.norm(camera_center(c.T_cam_slam) - camera_center(m.keyframes[o].T_cam_slam))
+                    for c, o in zip(copies, originals)]
+
+        before = gaps()
         mapper._loop(copies[-1])
         assert len(mapper.stats.loops) == 1 and mapper.stats.loops[0][1] == copies[-1].kf_id
         assert mapper.stats.loops[0][0] in originals
-        after = [np.linalg.norm(camera_center(c.T_cam_slam) - camera_center(m.keyframes[o].T_cam_slam))
-                 for c, o in zip(copies, originals)]
+        after = gaps()
         assert max(after) < 0.2 * min(before), (before, after)
         gen, S_corr = s.tracker.shared.correction
         assert gen == 1 and np.allclose(S_corr @ S_drift, np.eye(4), atol=0.05)
