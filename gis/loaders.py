@@ -154,7 +154,7 @@ def _georeferenced(path: Path, p_file: np.ndarray, n_file: np.ndarray | None, la
 def estimate_normals(p_enu: np.ndarray, radius_m: float) -> np.ndarray:
     """Per-point normals by local PCA (open3d), oriented upward where the sign is free."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_enu))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=12))  # 12: half the time of 30, planes are as good
     pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
     return np.asarray(pcd.normals)
 
