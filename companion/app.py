@@ -56,7 +56,7 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
 
     slam = SlamSystem(camera, cfg.slam)
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
-    return Localizer(slam, tuner, Globalizer(T_body_cam), cfg.alignment.finetune_every_frames,
+    return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      initial_alignment=initial_alignment,
                      bootstrap=BootstrapCollector() if cfg.alignment.bootstrap_from_gnss else BootstrapCollector(min_pairs=10**9))
 
