@@ -167,7 +167,9 @@ class LocalMapper:
         c = self.config
         w = c.local_window
         prev = [self.map.keyframes[i].center for i in ids[:-1][-w:]]
-        win = plm_window(np.array(prev), kf.center, w) if c.progressive_local_mapping and len(prev) >= 2 else w
+        prev_t = np.array([self.map.keyframes[i].t_s for i in ids[:-1][-w:]])
+        win = (plm_window(np.array(prev), kf.center, w, prev_t, kf.t_s)
+               if c.progressive_local_mapping and len(prev) >= 2 else w)
         if self._pending_ba is not None:
             return  # one local BA in flight at a time; this keyframe's points are mapped already
         job = self._build_ba(ids[-win:], max_fixed=max(2, w // 2))
@@ -389,7 +391,9 @@ class LocalMapper:
                 return [m.keyframes[k].center for k in ids]
 
         if c.loop_closing == "recursive":
-            windows = recursive_loop_closing(start, cur, w, ba, centers)
+            with m.lock:
+                times = [m.keyframes[k].t_s for k in ids]
+            windows = recursive_loop_closing(start, cur, w, ba, centers, times)
         else:
             windows = [list(range(start, cur + 1))]
             ba(windows[0])

@@ -191,3 +191,14 @@ def test_place_index_forgets_dropped_keyframes():
     assert len(idx) == 2
     assert all(c.kf_id in (2, 3) for c in idx.query(descs[1]))
     assert idx.query(descs[3])[0].kf_id == 3
+
+
+def test_reliable_region_with_uneven_keyframe_times_reduces_to_eq4():
+    prev = np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]
+    even = reliable_region(prev, np.arange(5.0), 5.0)
+    np.testing.assert_allclose(even.center, reliable_region(prev).center)
+    # steady 1 m/s but keyframes unevenly spaced: Eq. 4 literally would call the next one unstable
+    t = np.array([0.0, 1, 5, 6, 10])
+    p = np.c_[t, np.zeros(5), np.zeros(5)]
+    assert not reliable_region(p).contains([14.0, 0, 0])
+    assert reliable_region(p, t, 14.0).contains([14.0, 0, 0])
