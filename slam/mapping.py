@@ -358,8 +358,9 @@ class LocalMapper:
         return S
 
     def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> None:
-        """Move the current window by S, fuse the matched points, then BA: Algorithm 1 (recursive)
-        or the whole loop at once (full) — same starting state, so the two are comparable."""
+        """Move the current keyframe and its covisible recent keyframes by S (ORB-SLAM's loop
+        correction neighbourhood), fuse the matched points, then BA: Algorithm 1 (recursive) or the
+        whole loop at once (full) — same starting state, so the two are comparable."""
         self._finish_ba(wait=True)
         c = self.config
         w = c.local_window
@@ -368,7 +369,10 @@ class LocalMapper:
         with m.lock:
             ids = m.kf_ids()
             start, cur = ids.index(old_id), ids.index(kf.kf_id)
-            window = set(ids[max(cur - w, start):cur + 1])
+            own = set(kf.point_ids[kf.point_ids >= 0].tolist())
+            window = {k for k in ids[max(cur - w, start + 1):cur]
+                      if len(own & set(m.keyframes[k].point_ids.tolist())) >= c.loop_min_inliers // 2}
+            window.add(kf.kf_id)
             moved: set[int] = set()
             for k in window:
                 kfk = m.keyframes[k]
