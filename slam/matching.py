@@ -9,9 +9,12 @@ TH_LOW = 50  # Hamming threshold for a confident ORB match (ORB-SLAM's TH_LOW)
 TH_HIGH = 100
 
 
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], np.uint8)  # np.bitwise_count needs numpy 2
+
+
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distance between broadcastable uint8 descriptor arrays (last axis = bytes)."""
-    return np.bitwise_count(np.bitwise_xor(a, b)).sum(-1, dtype=np.int32)
+    return _POPCOUNT8[np.bitwise_xor(a, b)].sum(-1, dtype=np.int32)
 
 
 def match_bf(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8,
