@@ -594,8 +594,6 @@ def _json_default(o):
         return o.item()
     if isinstance(o, Path):
         return str(o)
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 

@@ -157,3 +157,16 @@ def test_bench_nominal_300_frames(tmp_path):
     assert fig["frames"] == 300 and fig["gnss_loss_at_s"] == pytest.approx(fig["start_s"] + 21.0)  # 70 % of 30 s at 10 fps
     assert fig["tracking_ratio"] > 0.5
     assert (tmp_path / "bench.json").exists() and (tmp_path / "error_cdf.png").exists()
+
+
+@pytest.mark.slow
+def test_bench_dataset(tmp_path):
+    pytest.importorskip("slam.system", reason="slam.system.SlamSystem has not landed")
+    from companion.bench import bench_one
+    from companion.dataset import write_dataset
+
+    ds = write_dataset(make_scenario("nominal", seed=1, n_frames=60, fps=10.0), tmp_path / "ds", progress=False)
+    fig, _ = bench_one(AppConfig(), tmp_path / "out", dataset=ds)
+    assert missing_keys(fig) == [] and fig["frames"] == 60
+    assert fig["gnss_baseline_error_m"]["gps"] is None and "gnss_baseline_error_m.gps" in fig["reasons"]
+    assert (tmp_path / "out" / "bench.json").exists()
