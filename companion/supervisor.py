@@ -179,6 +179,7 @@ class Supervisor:
         self.environ = environ  # None → os.environ (tests pass their own NOTIFY_SOCKET)
         self.watchdog_interval_s = notify.watchdog_interval_s(environ) if watchdog else None
         self.stop_requested = threading.Event()
+        self._signal: int | None = None  # set by the signal handler; read by run()
         self._hooks: list[tuple[str, Callable[[], None]]] = []
         self._last_ping_s = float("-inf")
         self._status = ""
@@ -193,8 +194,10 @@ class Supervisor:
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, _frame: object) -> None:
-        log.info("received %s; shutting down", signal.Signals(signum).name)
-        self.stop_requested.set()
+        # Only a plain assignment here: the handler runs in the main thread between bytecodes, possibly
+        # while that thread holds stop_requested's internal (non-reentrant) lock inside Event.wait, so
+        # calling Event.set() or logging from here can deadlock. run() notices within one poll.
+        self._signal = signum
 
     def start(self, ready_status: str = "running") -> None:
         for s in self.stages:
@@ -239,6 +242,9 @@ class Supervisor:
         poll_s = min(poll_s, self.watchdog_interval_s or poll_s)
         code = 0
         while not self.stop_requested.wait(poll_s):
+            if self._signal is not None:
+                log.info("received %s; shutting down", signal.Signals(self._signal).name)
+                break
             self.tick(status() if status else None)
             failed = [n for n in self.failed() if any(s.name == n and s.required for s in self.stages)]
             if failed:
