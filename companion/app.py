@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.config import AppConfig
 from companion.evaluate import fix_errors, stats, write_csv, write_geojson, write_report, write_tum
-from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput
+from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
@@ -58,7 +58,8 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      initial_alignment=initial_alignment,
-                     bootstrap=BootstrapCollector() if cfg.alignment.bootstrap_from_gnss else BootstrapCollector(min_pairs=10**9))
+                     bootstrap=BootstrapCollector(T_body_cam=T_body_cam) if cfg.alignment.bootstrap_from_gnss
+                     else BootstrapCollector(min_pairs=10**9))
 
 
 @dataclass
@@ -189,17 +190,18 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     run = RunLog()
     try:
         for k, step in enumerate(scenario.steps()):
+            for a in step.attitude:  # before the clock moves: ATTITUDE stamped at t carries the attitude at t
+                autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
             clock.advance_to(step.frame.t_s)
             for s in step.gnss:
                 autopilot.feed_gnss(s)
                 run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
-            for a in step.attitude:
-                autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
             truth = step.truth
             autopilot.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
+            att = _wait_attitude(bridge, step.frame.t_s)
             status = bridge.gnss_status()
             t_capture = time.perf_counter()
-            item = PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD)
+            item = PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD, attitude_prior(att))
             rec = localizer.process(item)
             t_tracked = time.perf_counter()
             bridge.submit_fix(rec.fix)
@@ -241,6 +243,17 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, scenario.origin, "TerraSLAM demo")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title="TerraSLAM demo")
     return summary
+
+
+def _wait_attitude(bridge, t_s: float, timeout_s: float = 0.05):
+    """Simulated flight only: the autopilot's ATTITUDE for simulated time t_s is on its way over UDP
+    when the frame is processed; wait for it briefly (real time) instead of using the previous one."""
+    t_end = time.monotonic() + timeout_s
+    while True:
+        att = bridge.attitude(max_age_s=0.1)
+        if (att is not None and att.t_s >= t_s - 1e-3) or time.monotonic() >= t_end:
+            return att
+        time.sleep(0.001)
 
 
 def _ecef(sample) -> np.ndarray:
@@ -290,7 +303,8 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             elif good:
                 lost_since = None
             t0 = time.perf_counter()
-            rec = localizer.process(PipelineInput(step.frame, status.sample, good))
+            prior = attitude_prior(step.attitude[-1]) if step.attitude else None
+            rec = localizer.process(PipelineInput(step.frame, status.sample, good, prior))
             run.wall_track_ms.append((time.perf_counter() - t0) * 1e3)
             monitor.on_fix(rec.fix)
             run.records.append(rec)

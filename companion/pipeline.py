@@ -16,6 +16,7 @@ The pipeline knows no camera device, MAVLink or simulator: callers pass an itera
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -23,12 +24,14 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
 from gis.align.fine import FineTuner
-from gis.geodesy import geodetic_to_ecef
+from gis.geodesy import R_NED_ENU, LocalFrame, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
 from gis.types import Alignment, AlignmentSource, GlobalFix
+from mavlink_bridge.monitor import h_acc_of
 from mavlink_bridge.types import GnssSample
 from slam.types import AttitudePrior, Frame, SlamPose
 
@@ -49,6 +52,13 @@ class PipelineInput:
     prior: AttitudePrior | None = None
 
 
+def attitude_prior(att) -> AttitudePrior | None:
+    """The autopilot's attitude (bridge VehicleAttitude or a dataset AttitudeSample) as a pipeline prior."""
+    if att is None:
+        return None
+    return AttitudePrior(att.t_s, att.roll_rad, att.pitch_rad, att.yaw_rad, getattr(att, "baro_alt_m", None))
+
+
 @dataclass(frozen=True)
 class FrameRecord:
     """What the pipeline did with one frame (the evaluation and the recorder read these)."""
@@ -66,36 +76,70 @@ class BootstrapCollector:
     """Pairs (SLAM camera centre, GNSS ECEF position) while GNSS is trusted (digital-twin §III-D).
 
     A fit needs a baseline: ``min_pairs`` pairs spanning ``min_baseline_m`` metres of GNSS track,
-    so that yaw and scale are observable. Pairs are dropped when the SLAM map resets.
+    so that yaw and scale are observable. Pairs are dropped when the SLAM map resets; only the
+    last ``max_pairs`` are kept (monocular scale drifts: the fit should describe the recent map).
+    Each GNSS position is carried to the frame's capture time with its reported velocity (a 0.1 s
+    lag at 10 m/s would otherwise be a 1 m along-track bias). With ``T_body_cam`` and an attitude
+    prior per frame, each pair also records the SLAM frame's orientation in ECEF
+    (R_ecef_enu·R_enu_ned·R_ned_body·R_body_cam·R_slam_camᵀ) and the fit uses it for the rotation.
     """
 
     min_pairs: int = 30
     min_baseline_m: float = 40.0
-    max_pairs: int = 600
+    max_pairs: int = 300
+    T_body_cam: np.ndarray | None = None
+    max_prior_age_s: float = 0.1
     p_slam: list[np.ndarray] = field(default_factory=list)
     p_ecef: list[np.ndarray] = field(default_factory=list)
+    R_ecef_slam: list[np.ndarray | None] = field(default_factory=list)
     t_s: list[float] = field(default_factory=list)
-    sigma_m: list[float] = field(default_factory=list)
+    h_acc_m: list[float] = field(default_factory=list)
+    v_acc_m: list[float] = field(default_factory=list)
     map_key: tuple[int, int] | None = None
     last_refusal: str | None = None
     _last_gnss_t: float | None = None
 
-    def add(self, pose: SlamPose, sample: GnssSample | None, trusted: bool) -> None:
+    def _lists(self) -> tuple[list, ...]:
+        return self.p_slam, self.p_ecef, self.R_ecef_slam, self.t_s, self.h_acc_m, self.v_acc_m
+
+    def add(self, pose: SlamPose, sample: GnssSample | None, trusted: bool, prior: AttitudePrior | None = None) -> None:
         key = (pose.map_id, pose.reset_counter)
         if key != self.map_key:
-            self.p_slam.clear(), self.p_ecef.clear(), self.t_s.clear(), self.sigma_m.clear()
+            for lst in self._lists():
+                lst.clear()
             self.map_key = key
         if not (trusted and sample is not None and pose.state.has_pose):
             return
         if sample.t_s == self._last_gnss_t:  # one pair per receiver solution
             return
         self._last_gnss_t = sample.t_s
+        h_ell = sample.h_ellipsoid_m  # GPS_RAW_INT's alt_ellipsoid is optional: else MSL + EGM96
+        if not math.isfinite(h_ell):
+            h_ell = float(msl_to_ellipsoid(sample.lat_deg, sample.lon_deg, sample.alt_msl_m))
+        h_acc = h_acc_of(sample)
+        v_acc = sample.v_acc_m if math.isfinite(sample.v_acc_m) and sample.v_acc_m > 0 else 1.6 * h_acc
+        if not all(math.isfinite(x) for x in (sample.lat_deg, sample.lon_deg, h_ell, h_acc, v_acc)):
+            return  # an incomplete solution is no reference
+        p_ecef = geodetic_to_ecef(sample.lat_deg, sample.lon_deg, h_ell)
+        frame = LocalFrame(sample.lat_deg, sample.lon_deg, h_ell)
+        dt = pose.t_s - sample.t_s
+        if sample.vel_ned_mps is not None and abs(dt) <= 1.0:
+            v_ned = np.nan_to_num(np.asarray(sample.vel_ned_mps, float))  # GPS_RAW_INT has no vertical speed
+            p_ecef = frame.ned_to_ecef(v_ned * dt)
+        R = None
+        if prior is not None and self.T_body_cam is not None and abs(prior.t_s - pose.t_s) <= self.max_prior_age_s:
+            R_ned_body = Rotation.from_euler("ZYX", [prior.yaw_rad, prior.pitch_rad, prior.roll_rad]).as_matrix()
+            R = (frame.R_ecef_enu @ R_NED_ENU.T @ R_ned_body @ self.T_body_cam[:3, :3]
+                 @ np.asarray(pose.T_slam_cam, float)[:3, :3].T)
         self.p_slam.append(pose.T_slam_cam[:3, 3].copy())
-        self.p_ecef.append(geodetic_to_ecef(sample.lat_deg, sample.lon_deg, sample.h_ellipsoid_m))
+        self.p_ecef.append(p_ecef)
+        self.R_ecef_slam.append(R)
         self.t_s.append(pose.t_s)
-        self.sigma_m.append(max(sample.h_acc_m, 0.1))
+        self.h_acc_m.append(max(h_acc, 0.1))
+        self.v_acc_m.append(max(v_acc, 0.1))
         if len(self.p_slam) > self.max_pairs:
-            del self.p_slam[0], self.p_ecef[0], self.t_s[0], self.sigma_m[0]
+            for lst in self._lists():
+                del lst[0]
 
     def ready(self) -> bool:
         if len(self.p_ecef) < self.min_pairs:
@@ -106,10 +150,16 @@ class BootstrapCollector:
     def solve(self) -> Alignment | None:
         reset_counter = self.map_key[1] if self.map_key else 0
         map_id = self.map_key[0] if self.map_key else 0
+        with_att = [i for i, R in enumerate(self.R_ecef_slam) if R is not None]
+        use = with_att if len(with_att) >= self.min_pairs else list(range(len(self.p_slam)))
+        h_acc = float(np.median([self.h_acc_m[i] for i in use]))
         try:
             return gnss_bootstrap(
-                np.asarray(self.p_slam), np.asarray(self.p_ecef), t_s=self.t_s[-1],
-                reset_counter=reset_counter, map_id=map_id, sigma_gnss_m=float(np.median(self.sigma_m)),
+                np.asarray([self.p_slam[i] for i in use]), np.asarray([self.p_ecef[i] for i in use]),
+                t_s=self.t_s[-1], reset_counter=reset_counter, map_id=map_id,
+                sigma_gnss_m=0.5,  # white per-axis noise floor of a code receiver; the fit's residuals raise it
+                bias_sigma_h_m=h_acc, bias_sigma_v_m=float(np.median([self.v_acc_m[i] for i in use])),
+                R_ecef_slam=np.asarray([self.R_ecef_slam[i] for i in use]) if use is with_att else None,
             )
         except ValueError as e:
             log.debug("GNSS bootstrap refused: %s", e)
@@ -215,7 +265,7 @@ class Localizer:
             with self._lock:
                 self.alignment = alignment = None
         if pose.state.has_pose:
-            self.bootstrap.add(pose, item.gnss, item.gnss_trusted)
+            self.bootstrap.add(pose, item.gnss, item.gnss_trusted, item.prior)
             self._frames_since_boot += 1
             gnss_sourced = alignment is None or alignment.source is AlignmentSource.GNSS
             if (item.gnss_trusted and gnss_sourced and self.bootstrap.ready()

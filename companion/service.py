@@ -12,7 +12,7 @@ import time
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
-from companion.pipeline import PipelineInput
+from companion.pipeline import PipelineInput, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
 from mavlink_bridge.types import GnssQuality

@@ -24,7 +24,7 @@ from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
 from mavlink_bridge.link import Link, load_signing_key
 from mavlink_bridge.monitor import EKF_STATUS_GPS_GLITCH, ESTIMATOR_GPS_GLITCH, GnssMonitor, sample_from_gps_raw
 from mavlink_bridge.policy import BridgeState, SwitchEvent, SwitchPolicy
-from mavlink_bridge.types import GnssStatus
+from mavlink_bridge.types import GnssStatus, VehicleAttitude
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -72,6 +72,7 @@ class Bridge:
         self._stop = threading.Event()
         self._origin: LocalFrame | None = None
         self._q_ned_body: np.ndarray | None = None
+        self._attitude: VehicleAttitude | None = None
         self._last_emit_s = -math.inf
         self._last_fix_s: float | None = None   # clock time of the last fix we wrote
         self._last_fix: GlobalFix | None = None
@@ -112,6 +113,12 @@ class Bridge:
     def gnss_status(self) -> GnssStatus:
         with self._lock:
             return self.monitor.status(self.clock())
+
+    def attitude(self, max_age_s: float = 0.1) -> VehicleAttitude | None:
+        """The autopilot's latest attitude, or None when none arrived within max_age_s."""
+        with self._lock:
+            a = self._attitude
+        return a if a is not None and self.clock() - a.t_s <= max_age_s else None
 
     def events(self) -> list[SwitchEvent]:
         with self._lock:
@@ -213,6 +220,9 @@ class Bridge:
         elif t == "ATTITUDE":
             with self._lock:
                 self._q_ned_body = _q_from_euler(msg.roll, msg.pitch, msg.yaw)
+                off = self._stats.boot_offset_s  # stamp with the autopilot's own time when known
+                t_att = msg.time_boot_ms / 1000.0 + off if off is not None else now
+                self._attitude = VehicleAttitude(min(t_att, now), msg.roll, msg.pitch, msg.yaw)
         elif t == "GPS_GLOBAL_ORIGIN":
             self._on_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude / 1000.0)
         elif t == "SYSTEM_TIME":
@@ -264,7 +274,7 @@ class Bridge:
         interval_us = lambda hz: 1e6 / hz  # noqa: E731
         streams = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self.cfg.gnss_stream_hz,
                    mavlink.MAVLINK_MSG_ID_GPS2_RAW: self.cfg.gnss_stream_hz,
-                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 10.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
+                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
         if self.cfg.autopilot == "ardupilot":
             streams[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = 2.0
         else:

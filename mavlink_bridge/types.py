@@ -64,3 +64,14 @@ class GnssStatus:
     @property
     def trusted(self) -> bool:
         return self.quality is GnssQuality.GOOD
+
+
+@dataclass(frozen=True)
+class VehicleAttitude:
+    """The autopilot's attitude (ATTITUDE): body FRD in the local NED frame, radians; t_s: when we
+    received it (bridge clock)."""
+
+    t_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float

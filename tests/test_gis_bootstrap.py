@@ -1,0 +1,150 @@
+"""GNSS bootstrap of the alignment: attitude-aided rotation on straight flights, honest covariance
+under correlated GNSS error, refusal of a SLAM track that GNSS contradicts, and the pipeline's
+pair collector (frame chain ECEF←ENU←NED←body←camera←SLAM, GNSS time alignment)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from companion.pipeline import BootstrapCollector
+from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
+from gis.geodesy import R_NED_ENU, LocalFrame
+from gis.globalizer import Globalizer
+from gis.sim3 import Sim3
+from mavlink_bridge.types import GnssSample, GpsFixType
+from slam.types import AttitudePrior, SlamPose, TrackingState
+
+ORIGIN = LocalFrame(47.3769, 8.5417, 450.0)
+T_ENU_SLAM = Sim3(9.0, Rotation.from_euler("xyz", [25, -40, 130], degrees=True).as_matrix(), np.array([12.0, -30.0, 55.0]))
+T_SLAM_ENU = T_ENU_SLAM.inverse()
+T_BODY_CAM = np.eye(4)
+T_BODY_CAM[:3, :3] = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], float)  # camera z forward = body x (FRD)
+
+
+def _straight(n=120, speed=8.0, dt=0.2):
+    t = np.arange(n) * dt
+    p = np.stack([speed * t * np.cos(0.4), speed * t * np.sin(0.4), np.full(n, 60.0)], 1)
+    return t, p
+
+
+def _R_ecef_slam_from_truth(n, noise_deg=0.0, bias_deg=(0.0, 0.0, 0.0), rng=None):
+    """What attitude gives per pair: the true R_ecef_slam perturbed like an AHRS (ENU axes)."""
+    R_true = ORIGIN.R_ecef_enu @ T_ENU_SLAM.R
+    out = []
+    for _ in range(n):
+        e = np.radians(np.asarray(bias_deg, float))
+        if rng is not None:
+            e = e + np.radians(noise_deg) * rng.standard_normal(3)
+        out.append(ORIGIN.R_ecef_enu @ Rotation.from_rotvec(e).as_matrix() @ ORIGIN.R_ecef_enu.T @ R_true)
+    return np.array(out)
+
+
+def test_attitude_makes_a_straight_flight_solvable():
+    rng = np.random.default_rng(1)
+    _, p = _straight()
+    p_slam = T_SLAM_ENU.apply(p)
+    p_ecef = ORIGIN.enu_to_ecef(p + rng.normal(0, 0.3, p.shape))
+    with pytest.raises(DegenerateAlignment, match="straight|collinear"):
+        gnss_bootstrap(p_slam, p_ecef, 0.0, sigma_gnss_m=0.3)
+    a = gnss_bootstrap(p_slam, p_ecef, 0.0, sigma_gnss_m=0.3, R_ecef_slam=_R_ecef_slam_from_truth(len(p), 0.3, rng=rng))
+    # A point 80 m to the side of the path (where the camera looks) lands where it should:
+    side = np.array([[-80 * np.sin(0.4) + 200 * np.cos(0.4), 80 * np.cos(0.4) + 200 * np.sin(0.4), 0.0]])
+    err = np.linalg.norm(a.T_ecef_slam.apply(T_SLAM_ENU.apply(side)) - ORIGIN.enu_to_ecef(side))
+    assert err < 1.5
+    assert a.T_ecef_slam.scale == pytest.approx(T_ENU_SLAM.scale, rel=0.01)
+
+
+def test_correlated_gnss_error_is_not_averaged_away():
+    """A 3 m common GNSS error (what a receiver's h_acc describes) must show in σ: the old fit
+    reported ~0.1 m here and then sent fixes 3 m off at >20σ."""
+    rng = np.random.default_rng(2)
+    t, p = _straight(200)
+    bias = np.array([2.4, -1.8, 3.0])
+    p_ecef = ORIGIN.enu_to_ecef(p + bias + rng.normal(0, 0.5, p.shape))
+    p_slam = T_SLAM_ENU.apply(p)
+    a = gnss_bootstrap(p_slam, p_ecef, 0.0, sigma_gnss_m=0.5, bias_sigma_h_m=3.9, bias_sigma_v_m=6.0,
+                       R_ecef_slam=_R_ecef_slam_from_truth(len(p), 0.2, (0.2, -0.2, 1.5), rng))
+    g = Globalizer(np.eye(4), slam_drift_fraction=0.0)
+    g.update_alignment(a)
+    pose = SlamPose(t_s=1.0, seq=1, T_slam_cam=np.eye(4), state=TrackingState.OK, reset_counter=0)
+    pose.T_slam_cam[:3, 3] = p_slam[-1]
+    fix = g.fix(pose)
+    truth_ned = ORIGIN.ecef_to_ned(ORIGIN.enu_to_ecef(p[-1:]))[0]
+    err_ned = ORIGIN.ecef_to_ned(fix.p_ecef_m[None])[0] - truth_ned
+    h_err = float(np.hypot(err_ned[0], err_ned[1]))
+    assert h_err > 2.0  # the bias is really in the fix (no way around it without the GIS model)
+    assert h_err < 3 * fix.h_acc_m and abs(err_ned[2]) < 3 * fix.v_acc_m
+    assert fix.h_acc_m >= 3.9 / np.sqrt(2)
+
+
+def test_slam_track_contradicting_gnss_is_refused():
+    rng = np.random.default_rng(3)
+    _, p = _straight(150)
+    bent = p.copy()
+    bent[75:, :2] += (np.arange(75)[:, None] * 0.5) * np.array([-np.sin(0.4), np.cos(0.4)])  # SLAM bends 37 m away
+    with pytest.raises(DegenerateAlignment, match="inconsistent"):
+        gnss_bootstrap(T_SLAM_ENU.apply(bent), ORIGIN.enu_to_ecef(p + rng.normal(0, 0.5, p.shape)), 0.0,
+                       sigma_gnss_m=0.5, bias_sigma_h_m=2.0, bias_sigma_v_m=3.0,
+                       R_ecef_slam=_R_ecef_slam_from_truth(len(p)))
+
+
+def test_bad_input_is_a_clear_error():
+    with pytest.raises(ValueError, match="equal shape"):
+        gnss_bootstrap(np.zeros((10, 3)), np.zeros((9, 3)), 0.0)
+    p = np.arange(30.0).reshape(10, 3)
+    with pytest.raises(ValueError, match="non-finite"):
+        gnss_bootstrap(np.where(p == 4, np.nan, p), p, 0.0)
+    with pytest.raises(ValueError, match="R_ecef_slam"):
+        gnss_bootstrap(p, ORIGIN.enu_to_ecef(p), 0.0, R_ecef_slam=np.zeros((3, 3, 3)))
+
+
+def test_collector_frame_chain_and_gnss_time_alignment():
+    """Synthetic vehicle: body attitude in NED + camera mount + SLAM frame → the collector's fit
+    recovers T_enu_slam; GNSS sampled 0.15 s before each frame is carried forward by its velocity."""
+    rng = np.random.default_rng(4)
+    col = BootstrapCollector(T_body_cam=T_BODY_CAM, min_pairs=30, min_baseline_m=40, max_prior_age_s=0.1)
+    v_enu = np.array([8 * np.cos(0.4), 8 * np.sin(0.4), 0.0])
+    yaw_ned = np.pi / 2 - 0.4  # heading clockwise from north along the velocity
+    for k in range(80):
+        t = 0.2 * k
+        p = v_enu * t + np.array([0.0, 0.0, 60.0])
+        R_ned_body = Rotation.from_euler("ZYX", [yaw_ned, -0.1 + 0.02 * np.sin(t), 0.03 * np.cos(t)]).as_matrix()
+        R_enu_cam = R_NED_ENU.T @ R_ned_body @ T_BODY_CAM[:3, :3]
+        T_slam_cam = np.eye(4)
+        T_slam_cam[:3, :3] = T_SLAM_ENU.R @ R_enu_cam
+        T_slam_cam[:3, 3] = T_SLAM_ENU.apply(p[None])[0]
+        pose = SlamPose(t_s=t, seq=k, T_slam_cam=T_slam_cam, state=TrackingState.OK, reset_counter=0)
+        t_g = t - 0.15
+        lat, lon, h = ORIGIN.enu_to_geodetic((p - v_enu * 0.15 + rng.normal(0, 0.2, 3))[None])
+        vel_ned = (v_enu[1], v_enu[0], -v_enu[2])
+        sample = GnssSample(t_g, GpsFixType.FIX_3D, float(lat[0]), float(lon[0]), 0.0, float(h[0]), 0.8, 1.1, 1.0, 1.5, 14, vel_ned)
+        yaw, pitch, roll = Rotation.from_matrix(R_ned_body).as_euler("ZYX")
+        col.add(pose, sample, True, AttitudePrior(t, roll, pitch, yaw))
+    assert col.ready() and all(R is not None for R in col.R_ecef_slam)
+    a = col.solve()
+    assert a is not None, col.last_refusal
+    q = T_SLAM_ENU.apply(np.array([[300.0, -50.0, 0.0], [0.0, 0.0, 60.0]]))
+    err = np.linalg.norm(a.T_ecef_slam.apply(q) - ORIGIN.enu_to_ecef(T_ENU_SLAM.apply(q)), axis=1)
+    assert err.max() < 1.0  # without the 0.15 s velocity carry the along-track error alone is 1.2 m
+    stale = AttitudePrior(100.0, 0.0, 0.0, 0.0)  # an attitude 100 s old is not used
+    col.add(SlamPose(t_s=16.2, seq=81, T_slam_cam=np.eye(4), state=TrackingState.OK, reset_counter=0),
+            GnssSample(16.1, GpsFixType.FIX_3D, 47.38, 8.54, 0.0, 500.0, 0.8, 1.1, 1.0, 1.5, 14), True, stale)
+    assert col.R_ecef_slam[-1] is None
+    col.add(SlamPose(t_s=16.4, seq=82, T_slam_cam=np.eye(4), state=TrackingState.OK, reset_counter=1), None, False)
+    assert len(col.p_slam) == 0  # a new SLAM map drops the pairs of the old one
+
+
+def test_collector_takes_samples_as_decoded_from_gps_raw_int():
+    """GPS_RAW_INT has no vertical speed and an optional ellipsoid height: (vn, ve, NaN) velocity
+    and NaN h_ellipsoid must still give a finite pair (MSL + EGM96), and an unknown accuracy none."""
+    col = BootstrapCollector(T_body_cam=T_BODY_CAM)
+    pose = SlamPose(t_s=1.0, seq=1, T_slam_cam=np.eye(4), state=TrackingState.OK, reset_counter=0)
+    s = GnssSample(0.9, GpsFixType.FIX_3D, 47.38, 8.54, 500.0, float("nan"), 0.8, 1.1, float("nan"), float("nan"), 14,
+                   (5.0, 1.0, float("nan")))
+    col.add(pose, s, True)
+    assert len(col.p_ecef) == 1 and np.all(np.isfinite(col.p_ecef[0]))
+    assert col.h_acc_m[0] == pytest.approx(0.8 * 2.0)  # HDOP × nominal range error
+    blind = GnssSample(1.1, GpsFixType.FIX_3D, 47.38, 8.54, 500.0, 548.0, float("nan"), 1.1, float("nan"), float("nan"), 14)
+    col.add(SlamPose(t_s=1.2, seq=2, T_slam_cam=np.eye(4), state=TrackingState.OK, reset_counter=0), blind, True)
+    assert len(col.p_ecef) == 1  # no HDOP, no h_acc: accuracy unknown, not used
