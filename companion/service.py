@@ -40,13 +40,18 @@ def run_service(cfg: AppConfig) -> int:
     from companion.app import build_localizer
     from gis.cache import GisCache
     from gis.loaders import load_model
+    from gis.model import GisFormatError
     from mavlink_bridge.bridge import Bridge
 
     setup_logging(cfg.logging)
     if cfg.gis.model is None:
         log.error("gis.model is not set: the service needs a GIS model file (any supported format)")
         return 2
-    model = load_model(cfg.gis.model.expanduser(), sample_spacing_m=cfg.gis.sample_spacing_m)
+    try:
+        model = load_model(cfg.gis.model.expanduser(), sample_spacing_m=cfg.gis.sample_spacing_m)
+    except (GisFormatError, OSError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
+        log.error("cannot load the GIS model (gis.model): %s", e)
+        return 2
     cache = GisCache(cfg.gis.cache_dir.expanduser())
     site_id = cache.save_model(model)
     source, T_body_cam = _open_camera(cfg)
