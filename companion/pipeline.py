@@ -86,7 +86,7 @@ class BootstrapCollector:
 
     min_pairs: int = 30
     min_baseline_m: float = 40.0
-    max_pairs: int = 300
+    max_pairs: int = 150
     T_body_cam: np.ndarray | None = None
     max_prior_age_s: float = 0.1
     p_slam: list[np.ndarray] = field(default_factory=list)

@@ -26,7 +26,7 @@ class MavlinkConfig(BaseModel):
     target_component: int = Field(1, ge=0, le=255, description="autopilot component id (1 = MAV_COMP_ID_AUTOPILOT1)")
     feed_in_standby: bool = Field(True, description="also feed the EKF while GNSS is trusted (secondary source, keeps the EV/GPS_INPUT path warm)")
     max_fix_age_s: float = Field(0.5, gt=0, le=5, description="a fix older than this when submitted is never sent")
-    max_fix_h_acc_m: float = Field(5.0, gt=0, description="fixes with a larger 1-sigma horizontal accuracy are not trustworthy: not sent (GPS_INPUT gets fix_type NO_FIX)")
+    max_fix_h_acc_m: float = Field(10.0, gt=0, description="fixes with a larger 1-sigma horizontal accuracy are not sent (GPS_INPUT gets fix_type NO_FIX); below it the honest accuracy goes with the fix and the EKF weighs it")
     uere_m: float = Field(2.0, gt=0, description="nominal range error used to express h_acc/v_acc as HDOP/VDOP for GPS_INPUT (h_acc 5 m -> HDOP 2.5)")
     reported_satellites: int = Field(10, ge=6, le=64, description="satellites_visible reported with a trustworthy GPS_INPUT fix (ArduPilot needs >= 6)")
     agp_id: int = Field(1, ge=0, le=255, description="PX4 GLOBAL_POSITION_SENSOR id (= EKF2_AGP0_ID)")
