@@ -141,7 +141,11 @@ def write_outputs(run: RunLog, summary: dict, out_dir: Path, origin, title: str)
         with_truth = [f for f in fixes if f.seq in run.truth_ecef_m]
         e = fix_errors(with_truth, np.stack([run.truth_ecef_m[f.seq] for f in with_truth]))
         events = run.switch_events + [(t, s) for t, s in run.alignment_events if "accepted (initial" not in s][:12]
-        viz.plot_error_over_time(out_dir / "error_over_time.png", {"ours (3D)": (e.t_s, e.err_3d_m), "ours 3σ h_acc": (e.t_s, 3 * e.h_acc_m)}, events=events)
+        series = {"ours (horizontal)": (e.t_s, e.err_h_m), "ours 3σ (3 × h_acc)": (e.t_s, 3 * e.h_acc_m)}
+        if run.autopilot_err_m:
+            series["autopilot EKF (horizontal)"] = (np.array([t for t, _, _ in run.autopilot_err_m]),
+                                                    np.array([x for _, x, _ in run.autopilot_err_m]))
+        viz.plot_error_over_time(out_dir / "error_over_time.png", series, events=events)
         viz.plot_error_cdf(out_dir / "error_cdf.png", {"ours (3D)": e.err_3d_m, "ours (horizontal)": e.err_h_m})
         written += [out_dir / "track.png", out_dir / "error_over_time.png", out_dir / "error_cdf.png"]
     if run.wall_track_ms:

@@ -160,6 +160,7 @@ class BootstrapCollector:
                 sigma_gnss_m=0.5,  # white per-axis noise floor of a code receiver; the fit's residuals raise it
                 bias_sigma_h_m=h_acc, bias_sigma_v_m=float(np.median([self.v_acc_m[i] for i in use])),
                 R_ecef_slam=np.asarray([self.R_ecef_slam[i] for i in use]) if use is with_att else None,
+                t_pairs_s=np.asarray([self.t_s[i] for i in use]),
             )
         except ValueError as e:
             log.debug("GNSS bootstrap refused: %s", e)

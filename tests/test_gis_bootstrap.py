@@ -78,6 +78,24 @@ def test_correlated_gnss_error_is_not_averaged_away():
     assert fix.h_acc_m >= 3.9 / np.sqrt(2)
 
 
+def test_turns_sharpen_a_biased_compass_heading():
+    """Attitude with a 2° heading bias + a flight with turns: the positions pull the heading back
+    (fused in one Gauss–Newton solve), and the reported heading σ shrinks below the compass's."""
+    rng = np.random.default_rng(6)
+    t = np.arange(300) * 0.2
+    p = np.stack([60 * np.cos(t / 10), 60 * np.sin(t / 10), np.full(len(t), 60.0)], 1)  # 60 m radius circle
+    p_slam = T_SLAM_ENU.apply(p)
+    p_ecef = ORIGIN.enu_to_ecef(p + rng.normal(0, 0.5, p.shape))
+    R_att = _R_ecef_slam_from_truth(len(p), 0.2, (0.0, 0.0, 2.0), rng)
+    a = gnss_bootstrap(p_slam, p_ecef, 0.0, sigma_gnss_m=0.5, bias_sigma_h_m=1.0, bias_sigma_v_m=1.5,
+                       R_ecef_slam=R_att, t_pairs_s=t)
+    R_enu_slam = ORIGIN.R_ecef_enu.T @ a.T_ecef_slam.R
+    yaw_err_deg = np.degrees(Rotation.from_matrix(R_enu_slam @ T_ENU_SLAM.R.T).as_rotvec()[2])
+    assert abs(yaw_err_deg) < 1.0
+    cov_rot = np.linalg.inv(a.information_6x6)[:3, :3]
+    assert np.degrees(np.sqrt(cov_rot[2, 2])) < 1.5
+
+
 def test_slam_track_contradicting_gnss_is_refused():
     rng = np.random.default_rng(3)
     _, p = _straight(150)
@@ -86,7 +104,7 @@ def test_slam_track_contradicting_gnss_is_refused():
     with pytest.raises(DegenerateAlignment, match="inconsistent"):
         gnss_bootstrap(T_SLAM_ENU.apply(bent), ORIGIN.enu_to_ecef(p + rng.normal(0, 0.5, p.shape)), 0.0,
                        sigma_gnss_m=0.5, bias_sigma_h_m=2.0, bias_sigma_v_m=3.0,
-                       R_ecef_slam=_R_ecef_slam_from_truth(len(p)))
+                       R_ecef_slam=_R_ecef_slam_from_truth(len(p)), t_pairs_s=0.2 * np.arange(len(p)))
 
 
 def test_bad_input_is_a_clear_error():

@@ -38,6 +38,7 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
                    bias_sigma_h_m: float = 0.0, bias_sigma_v_m: float = 0.0,
                    R_ecef_slam: np.ndarray | None = None,
                    attitude_sigma_deg: tuple[float, float, float] = (0.5, 0.5, 2.0),
+                   t_pairs_s: np.ndarray | None = None, gnss_corr_time_s: float = 10.0,
                    max_rmse_factor: float = 3.0) -> Alignment:
     """T_ecef_slam from SLAM camera positions p_slam (N,3) and GNSS positions p_ecef (N,3) at the same times.
 
@@ -46,8 +47,12 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     correlated part of the GNSS error that no averaging removes (added to the translation).
     R_ecef_slam: optional (N,3,3) rotation of the SLAM frame in ECEF per pair, from the autopilot's
     attitude (see module doc); attitude_sigma_deg: its 1-σ (east, north, up axes: roll/pitch
-    tilt and heading). max_rmse_factor: refuse when the fit's RMS residual exceeds this many
-    times the GNSS accuracy (SLAM track distorted or GNSS inconsistent).
+    tilt and heading). It is fused with the rotation the positions determine (a prior in a
+    Gauss–Newton solve), so turns sharpen the heading and straight flight still works.
+    t_pairs_s / gnss_corr_time_s: GNSS errors are correlated over about gnss_corr_time_s, so N
+    fixes spanning T seconds weigh as about T/gnss_corr_time_s + 1 independent ones (without times:
+    N, optimistic). max_rmse_factor: refuse when the fit's RMS residual exceeds this many times the
+    GNSS accuracy (SLAM track distorted or GNSS inconsistent).
     Raises DegenerateAlignment when the rotation is not determined to max_sigma_rot_deg (1-σ) or
     the fit is inconsistent, ValueError on bad input.
     """
@@ -57,75 +62,77 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
         raise ValueError(f"gnss_bootstrap needs (N,3) arrays of equal shape, got {p_slam.shape} and {p_ecef.shape}")
     if not (np.all(np.isfinite(p_slam)) and np.all(np.isfinite(p_ecef))):
         raise ValueError("gnss_bootstrap: non-finite positions")
-    if len(p_slam) < 4:
-        raise DegenerateAlignment(f"gnss_bootstrap needs at least 4 positions, got {len(p_slam)}")
+    n = len(p_slam)
+    if n < 4:
+        raise DegenerateAlignment(f"gnss_bootstrap needs at least 4 positions, got {n}")
     lat, lon, h = ecef_to_geodetic(p_ecef.mean(axis=0))
     frame = LocalFrame(float(lat), float(lon), float(h))  # ENU at the centroid: info axes and moments
     p_enu = frame.ecef_to_enu(p_ecef)
     if R_ecef_slam is not None:
-        T_enu_slam, cov_rot = _fit_with_attitude(p_slam, p_enu, frame, np.asarray(R_ecef_slam, float), attitude_sigma_deg)
+        R_att, info_att = _attitude_rotation(frame, np.asarray(R_ecef_slam, float), n, attitude_sigma_deg)
+        T = _scale_translation(p_slam, p_enu, R_att)
     else:
         try:
-            T_enu_slam = umeyama(p_slam, p_enu, with_scale=True)
+            T = umeyama(p_slam, p_enu, with_scale=True)
         except ValueError as e:
             raise DegenerateAlignment(str(e)) from None
-        cov_rot = None
-    res = T_enu_slam.apply(p_slam) - p_enu
-    n = len(p_slam)
-    dof_frac = max(1.0 - (4 if cov_rot is not None else 7) / (3 * n), 1.0 / (3 * n))
-    rmse_h = float(np.sqrt(np.mean(res[:, :2] ** 2) / dof_frac))  # per horizontal axis
-    rmse_v = float(np.sqrt(np.mean(res[:, 2] ** 2) / dof_frac))
-    rmse = float(np.sqrt((2 * rmse_h**2 + rmse_v**2) / 3))
-    for what, r, acc in (("horizontal", rmse_h, max(sigma_gnss_m, bias_sigma_h_m / np.sqrt(2))),
-                         ("vertical", rmse_v, max(sigma_gnss_m, bias_sigma_v_m))):
-        if r > max_rmse_factor * acc:
-            raise DegenerateAlignment(
-                f"SLAM track inconsistent with GNSS: {what} fit residual {r:.2f} m per axis > "
-                f"{max_rmse_factor:g} × GNSS accuracy {acc:.2f} m"
-            )
-    sigma2 = max(rmse**2, sigma_gnss_m**2)  # white noise per axis
-    q = p_enu  # centred: the frame origin is the centroid
-    if cov_rot is None:
-        A = np.zeros((n, 3, 6))
-        A[:, :, :3] = -_skew(q)
-        A[:, :, 3:] = np.eye(3)
-        H = np.einsum("nij,nik->jk", A, A) / sigma2
-        w, V = np.linalg.eigh(H)
-        if w[0] <= 1e-12 * w[-1]:
-            raise DegenerateAlignment("GNSS trajectory is collinear: rotation about it is undetermined")
-        cov = (V / w) @ V.T
-    else:  # rotation from attitude (independent of the positions); translation at the centroid
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = cov_rot
-        cov[3:, 3:] = np.eye(3) * sigma2 / n
+        R_att, info_att = None, np.zeros((3, 3))
+    n_eff = float(n)
+    if t_pairs_s is not None:
+        t_pairs_s = np.asarray(t_pairs_s, float)
+        n_eff = float(np.clip((t_pairs_s.max() - t_pairs_s.min()) / gnss_corr_time_s + 1.0, 1.0, n))
+    sigma2 = sigma_gnss_m**2
+    for _ in range(2):  # fit, judge the residuals, refit with the noise they show
+        T, H = _gauss_newton(T, p_slam, p_enu, (n_eff / n) / sigma2, R_att, info_att)
+        res = T.apply(p_slam) - p_enu
+        dof_frac = max(1.0 - (4 if R_att is not None else 7) / (3 * n), 1.0 / (3 * n))
+        rmse_h = float(np.sqrt(np.mean(res[:, :2] ** 2) / dof_frac))  # per horizontal axis
+        rmse_v = float(np.sqrt(np.mean(res[:, 2] ** 2) / dof_frac))
+        for what, r, acc in (("horizontal", rmse_h, max(sigma_gnss_m, bias_sigma_h_m / np.sqrt(2))),
+                             ("vertical", rmse_v, max(sigma_gnss_m, bias_sigma_v_m))):
+            if r > max_rmse_factor * acc:
+                raise DegenerateAlignment(
+                    f"SLAM track inconsistent with GNSS: {what} fit residual {r:.2f} m per axis > "
+                    f"{max_rmse_factor:g} × GNSS accuracy {acc:.2f} m"
+                )
+        sigma2 = max((2 * rmse_h**2 + rmse_v**2) / 3, sigma_gnss_m**2)  # white noise per axis
+    w, V = np.linalg.eigh(H)
+    if w[0] <= 1e-12 * w[-1]:
+        raise DegenerateAlignment("GNSS trajectory is collinear: rotation about it is undetermined")
+    cov7 = (V / w) @ V.T
+    cov = cov7[:6, :6].copy()
     cov[3:, 3:] += np.diag([bias_sigma_h_m**2 / 2, bias_sigma_h_m**2 / 2, bias_sigma_v_m**2])
     sig_rot_deg = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])))
     if sig_rot_deg > max_sigma_rot_deg:
         raise DegenerateAlignment(
             f"GNSS trajectory too short or too straight: rotation 1-σ {sig_rot_deg:.2f}° > {max_sigma_rot_deg}°"
         )
-    spread2 = float(np.sum((T_enu_slam.scale * (p_slam - p_slam.mean(axis=0))) ** 2))
     return Alignment(
-        T_ecef_slam=compose(enu_sim3(frame), T_enu_slam), source=AlignmentSource.GNSS, t_s=t_s,
+        T_ecef_slam=compose(enu_sim3(frame), T), source=AlignmentSource.GNSS, t_s=t_s,
         reset_counter=reset_counter, information_6x6=np.linalg.inv(cov),
         sigma_m=float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])),
         rmse_m=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))), n_points=n, map_id=map_id,
-        center_slam=p_slam.mean(axis=0), scale_sigma=float(np.sqrt(sigma2 / max(spread2, 1e-12))),
+        center_slam=p_slam.mean(axis=0), scale_sigma=float(np.sqrt(cov7[6, 6])),
     )
 
 
-def _fit_with_attitude(p_slam: np.ndarray, p_enu: np.ndarray, frame: LocalFrame, R_ecef_slam: np.ndarray,
-                       attitude_sigma_deg: tuple[float, float, float]) -> tuple[Sim3, np.ndarray]:
-    """Rotation = chordal mean of the per-pair attitudes; then p_enu ≈ s·R·p_slam + t by least squares.
+def _attitude_rotation(frame: LocalFrame, R_ecef_slam: np.ndarray, n: int,
+                       attitude_sigma_deg: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """R_enu_slam = chordal mean of the per-pair attitudes, and its information (1/rad², ENU axes).
 
-    Returns (T_enu_slam, 3x3 rotation covariance in rad², ENU axes, left perturbation)."""
-    if R_ecef_slam.shape != (len(p_slam), 3, 3) or not np.all(np.isfinite(R_ecef_slam)):
-        raise ValueError(f"R_ecef_slam must be ({len(p_slam)}, 3, 3) finite rotations, got {R_ecef_slam.shape}")
+    The AHRS bias does not average out, so the covariance is its σ² plus the pairs' own scatter
+    (SLAM rotation drift within the window), not divided by N."""
+    if R_ecef_slam.shape != (n, 3, 3) or not np.all(np.isfinite(R_ecef_slam)):
+        raise ValueError(f"R_ecef_slam must be ({n}, 3, 3) finite rotations, got {R_ecef_slam.shape}")
     rots = Rotation.from_matrix(frame.R_ecef_enu.T @ R_ecef_slam)  # R_enu_slam per pair
     mean = rots.mean()
     d = (rots * mean.inv()).as_rotvec()  # scatter about the mean, ENU axes
-    cov_rot = np.diag(np.radians(np.asarray(attitude_sigma_deg, float)) ** 2) + d.T @ d / len(d)
-    R = mean.as_matrix()
+    cov = np.diag(np.radians(np.asarray(attitude_sigma_deg, float)) ** 2) + d.T @ d / n
+    return mean.as_matrix(), np.linalg.inv(cov)
+
+
+def _scale_translation(p_slam: np.ndarray, p_enu: np.ndarray, R: np.ndarray) -> Sim3:
+    """p_enu ≈ s·R·p_slam + t by linear least squares for a given rotation."""
     q = p_slam @ R.T
     qc, pc = q - q.mean(axis=0), p_enu - p_enu.mean(axis=0)
     den = float(np.sum(qc**2))
@@ -134,7 +141,39 @@ def _fit_with_attitude(p_slam: np.ndarray, p_enu: np.ndarray, frame: LocalFrame,
     s = float(np.sum(qc * pc)) / den
     if s <= 0:
         raise DegenerateAlignment("SLAM track runs against the GNSS track under the attitude rotation")
-    return Sim3(s, R, p_enu.mean(axis=0) - s * q.mean(axis=0)), cov_rot
+    return Sim3(s, R, p_enu.mean(axis=0) - s * q.mean(axis=0))
+
+
+def _gauss_newton(T: Sim3, p_slam: np.ndarray, p_enu: np.ndarray, w: float, R_prior: np.ndarray | None,
+                  info_prior: np.ndarray, iterations: int = 5) -> tuple[Sim3, np.ndarray]:
+    """min Σ w·|s·R·p_i + t − g_i|² + log(R·R_priorᵀ)ᵀ·Λ·log(R·R_priorᵀ) over (R, t, log s).
+
+    Left perturbations x' = e^δσ·exp(δθ)·x + δt about the ENU origin (the GNSS centroid, where the
+    SLAM centroid lands), as the Globalizer propagates them; returns the fit and the 7x7
+    Gauss–Newton Hessian (its inverse is the covariance of [rot, trans, log-scale])."""
+    H = np.zeros((7, 7))
+    for _ in range(iterations):
+        x = T.apply(p_slam)  # s·R·p + t, centred near the origin
+        r = (x - p_enu).reshape(-1)
+        J = np.zeros((len(x), 3, 7))
+        J[:, :, :3] = -_skew(x)
+        J[:, :, 3:6] = np.eye(3)
+        J[:, :, 6] = x
+        J = J.reshape(-1, 7)
+        H = w * J.T @ J
+        g = w * J.T @ r
+        if R_prior is not None:
+            e = Rotation.from_matrix(T.R @ R_prior.T).as_rotvec()
+            H[:3, :3] += info_prior
+            g[:3] += info_prior @ e
+        try:
+            dx = -np.linalg.solve(H + 1e-12 * np.trace(H) * np.eye(7), g)
+        except np.linalg.LinAlgError:
+            break
+        T = compose(Sim3(float(np.exp(dx[6])), Rotation.from_rotvec(dx[:3]).as_matrix(), dx[3:6]), T)
+        if np.linalg.norm(dx) < 1e-9:
+            break
+    return T, H
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
