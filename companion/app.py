@@ -165,6 +165,7 @@ class DemoOptions:
     fps: float = 10.0
     gnss_loss_at_s: float = 40.0
     autopilot: str = "ardupilot"
+    gnss_timeline: str | None = None  # e.g. "spoof_drift@40" (companion.sim.gnss.parse_timeline) instead of the loss
     scenario: str = "gnss_loss"
 
 
@@ -173,13 +174,14 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     """The embedded default: simulated flight, GNSS lost mid-flight, our fixes take over."""
     from companion.sim import make_scenario
     from companion.sim.gis_export import export_gis
-    from companion.sim.gnss import GnssEvent, GnssSpec
+    from companion.sim.gnss import GnssEvent, GnssSpec, parse_timeline
     from mavlink_bridge.bridge import Bridge
     from mavlink_bridge.sim_autopilot import SimAutopilot
 
     out_dir.mkdir(parents=True, exist_ok=True)
     scenario = make_scenario(opts.scenario, opts.seed, opts.n_frames, fps=opts.fps,
-                             gnss=GnssSpec(events=(GnssEvent("dropout", opts.gnss_loss_at_s),)))
+                             gnss=GnssSpec(events=parse_timeline(opts.gnss_timeline) if opts.gnss_timeline
+                                           else (GnssEvent("dropout", opts.gnss_loss_at_s),)))
     gis_world, _ = scenario.gis
     files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
@@ -208,6 +210,7 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
             item = PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD, attitude_prior(att))
             rec = localizer.process(item)
             t_tracked = time.perf_counter()
+            bridge.vision_check(localizer.gnss_inconsistency())
             bridge.submit_fix(rec.fix)
             t_wire = time.perf_counter()
             run.records.append(rec)
@@ -309,6 +312,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             t0 = time.perf_counter()
             prior = attitude_prior(step.attitude[-1]) if step.attitude else None
             rec = localizer.process(PipelineInput(step.frame, status.sample, good, prior))
+            monitor.on_vision_check(localizer.gnss_inconsistency())
             run.wall_track_ms.append((time.perf_counter() - t0) * 1e3)
             monitor.on_fix(rec.fix)
             run.records.append(rec)

@@ -75,6 +75,8 @@ def demo(
     autopilot: str = typer.Option("ardupilot", "--autopilot", help="simulated autopilot personality: ardupilot | px4"),
     seed: int = typer.Option(0, "--seed"),
     loss_at: float = typer.Option(40.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
+    gnss: Optional[str] = typer.Option(None, "--gnss", help="GNSS event timeline instead of the loss, MODE@START[-END],...: "
+                                       "dropout, jamming, spoof_drift (1 m/s walk-off), spoof_jump, dgps, standalone; e.g. 'spoof_drift@40'"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""
@@ -83,7 +85,14 @@ def demo(
     if autopilot not in ("ardupilot", "px4"):
         fail(f"--autopilot must be ardupilot or px4, got {autopilot!r}")
     cfg = _load(config)
-    opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot)
+    if gnss is not None:
+        from companion.sim.gnss import parse_timeline
+
+        try:
+            parse_timeline(gnss)
+        except ValueError as e:
+            fail(str(e))
+    opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot, gnss_timeline=gnss)
     with _progress_bar("demo") as bar:
         task = bar.add_task("simulated flight", total=frames, state="")
 

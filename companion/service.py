@@ -79,6 +79,7 @@ def run_service(cfg: AppConfig) -> int:
             status = bridge.gnss_status()
             prior = attitude_prior(bridge.attitude(max_age_s=0.1))
             rec = localizer.process(PipelineInput(frame, status.sample, status.quality is GnssQuality.GOOD, prior))
+            bridge.vision_check(localizer.gnss_inconsistency())
             latency.mark(frame.seq, "track")
             bridge.submit_fix(rec.fix)
             latency.mark(frame.seq, "wire")

@@ -114,6 +114,11 @@ class Bridge:
         with self._lock:
             return self.monitor.status(self.clock())
 
+    def vision_check(self, reason: str | None) -> None:
+        """The pipeline's GNSS-vs-visual-odometry verdict (None = consistent); see GnssMonitor.on_vision_check."""
+        with self._lock:
+            self.monitor.on_vision_check(reason)
+
     def attitude(self, max_age_s: float = 0.1) -> VehicleAttitude | None:
         """The autopilot's latest attitude, or None when none arrived within max_age_s."""
         with self._lock:

@@ -160,6 +160,7 @@ class GnssMonitor:
     sample: GnssSample | None = None
     _glitch_t_s: float | None = None
     fix: GlobalFix | None = None  # our latest vision fix
+    vision_check: str | None = None  # why the pipeline's GNSS-vs-visual-odometry test distrusts GNSS, or None
     spoof: SpoofDetector = field(init=False)
     jamming: JammingDetector = field(init=False)
 
@@ -177,6 +178,11 @@ class GnssMonitor:
         """Our latest vision fix (None: tracking lost; the spoofing test pauses, its verdict holds)."""
         self.fix = fix
 
+    def on_vision_check(self, reason: str | None) -> None:
+        """The pipeline's verdict (companion.pipeline.GnssConsistency): None = GNSS moves as vision
+        says; a reason = GNSS walked or jumped away from visual odometry."""
+        self.vision_check = reason
+
     def on_ekf_flags(self, glitch: bool, t_s: float) -> None:
         if glitch:
             self._glitch_t_s = t_s
@@ -187,6 +193,8 @@ class GnssMonitor:
             untrusted = []
             if self.spoof.spoofed:
                 untrusted.append(f"GNSS disagrees with vision ({self.spoof.last_sigma:.1f} sigma > {self.cfg.spoof_sigma:g}): spoofing suspected")
+            if self.vision_check is not None:
+                untrusted.append(self.vision_check)
             if self._glitch_t_s is not None and now_s - self._glitch_t_s <= GLITCH_HOLD_S:
                 untrusted.append("autopilot EKF reports GPS glitch")
             if self.jamming.jammed(now_s):

@@ -1,0 +1,74 @@
+"""GNSS vs visual odometry (companion.pipeline.GnssConsistency): a spoofer that jumps or walks away
+from where vision says we are is flagged, clean receiver noise (the simulator's Gauss–Markov model)
+is not, and the flag reaches the GNSS monitor as an UNTRUSTED verdict."""
+from __future__ import annotations
+
+import numpy as np
+
+from companion.pipeline import GnssConsistency
+from companion.sim.gnss import _gauss_markov
+from mavlink_bridge.config import SwitchingConfig
+from mavlink_bridge.monitor import GnssMonitor
+from mavlink_bridge.types import GnssQuality, GnssSample, GpsFixType
+
+DT = 0.2  # 5 Hz receiver
+
+
+def _receiver_noise(n: int, rng) -> np.ndarray:
+    return np.stack([_gauss_markov(n, DT, 20.0, 2.7, rng) + rng.standard_normal(n) * 0.7 for _ in range(2)], 1)
+
+
+def _first_flag(nu: np.ndarray, t0_s: float = 0.0) -> float | None:
+    c = GnssConsistency()
+    for k, v in enumerate(nu):
+        c.update(k * DT, v)
+        if c.inconsistent:
+            return k * DT - t0_s
+    return None
+
+
+def test_clean_receiver_noise_is_never_flagged():
+    for seed in range(3):
+        assert _first_flag(_receiver_noise(int(1200 / DT), np.random.default_rng(seed))) is None  # 3 × 20 min
+
+
+def test_jump_and_walk_off_are_flagged_and_kept_out_of_fits():
+    rng = np.random.default_rng(7)
+    n = int(90 / DT)
+    t = np.arange(n) * DT
+    base = _receiver_noise(n, rng)
+    jump = base.copy()
+    jump[t >= 60, 1] += 10.0
+    assert _first_flag(jump, 60.0) <= 5.0  # issue 6: spoofing detected ≤ 5 s at 10 m offset
+    walk = base.copy()
+    walk[t >= 60, 0] += (t[t >= 60] - 60) * 1.0
+    delay = _first_flag(walk, 60.0)
+    assert delay is not None and delay <= 20.0
+    c = GnssConsistency()
+    used = [c.update(tk, v) for tk, v in zip(t, walk)]
+    assert not any(u for tk, u in zip(t, used) if tk >= 60 + delay)  # nothing after the flag feeds a fit
+
+
+def test_flag_clears_when_gnss_agrees_again_and_restarts_after_a_gap():
+    c = GnssConsistency()
+    for k in range(50):
+        c.update(k * DT, np.zeros(2))
+    for k in range(50, 80):
+        c.update(k * DT, np.array([12.0, 0.0]))
+    assert c.inconsistent
+    for k in range(80, 100):
+        c.update(k * DT, np.zeros(2))
+    assert not c.inconsistent
+    c.update(100 * DT + 30.0, np.array([40.0, 0.0]))  # back after a 30 s outage: vision drifted meanwhile
+    assert not c.inconsistent and c.last_dev_m == 0.0
+
+
+def test_monitor_turns_the_vision_verdict_into_untrusted():
+    m = GnssMonitor(SwitchingConfig())
+    m.on_sample(GnssSample(10.0, GpsFixType.FIX_3D, 47.0, 8.0, 500.0, 548.0, 0.8, 1.1, 1.5, 2.5, 14))
+    assert m.status(10.1).quality is GnssQuality.GOOD
+    m.on_vision_check("GNSS moves 8.3 m away from visual odometry (gate 5 m): spoofing suspected")
+    st = m.status(10.1)
+    assert st.quality is GnssQuality.UNTRUSTED and any("visual odometry" in r for r in st.reasons)
+    m.on_vision_check(None)
+    assert m.status(10.1).quality is GnssQuality.GOOD
