@@ -76,7 +76,7 @@ def demo(
     seed: int = typer.Option(0, "--seed"),
     loss_at: float = typer.Option(40.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
     gnss: Optional[str] = typer.Option(None, "--gnss", help="GNSS event timeline instead of the loss, MODE@START[-END],...: "
-                                       "dropout, jamming, spoof_drift (1 m/s walk-off), spoof_jump, dgps, standalone; e.g. 'spoof_drift@40'"),
+                                       "dropout, jamming, spoof_drift (0.5 m/s walk-off), spoof_jump (40 m), dgps, standalone; e.g. 'spoof_drift@40'"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""
