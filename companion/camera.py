@@ -23,7 +23,9 @@ Behaviour shared by every kind:
   frames (``stats().dropped``) instead of building latency. ``lossless=True`` (offline replay)
   makes file/sim sources wait for the consumer instead, so every frame is delivered.
 * ``Frame.t_s`` is the source's own clock: ``time.monotonic()`` at grab for live sources; the file's
-  timestamps for video/folder/sim (so they line up with the dataset's truth and GNSS logs).
+  timestamps for video/folder/sim (so they line up with the dataset's truth and GNSS logs). In
+  realtime playback ``playback_epoch_s`` maps them onto the monotonic clock (t_s + epoch = when the
+  frame was due), as ``terraslam run`` needs: the bridge and the autopilot's messages use that clock.
   ``capture_info(seq).grab_t_s`` is always the monotonic grab time (latency accounting).
   ``Frame.seq`` is the source's counter; gaps are dropped frames.
 * File and sim sources play at their timestamps' pace when ``realtime=True`` (like a live camera)
@@ -252,6 +254,7 @@ class CameraSource:
     _info: OrderedDict[int, CaptureInfo] = field(default_factory=OrderedDict)
     _manager: threading.Thread | None = None
     _size_warned: bool = False
+    _epoch_s: float | None = None
 
     def start(self) -> CameraSource:
         self._manager = threading.Thread(target=self._manage, name=f"camera-{self.name}", daemon=True)
@@ -301,6 +304,14 @@ class CameraSource:
         with self._cond:
             return self._stats.eof and self._slot is None
 
+    @property
+    def playback_epoch_s(self) -> float | None:
+        """Realtime file/sim playback: the monotonic time at which source time 0 s plays, so a frame's
+        ``t_s`` + this is when it was due on the monotonic clock. None for live sources (their ``t_s``
+        is monotonic already), for playback that is not realtime, and before the first frame."""
+        with self._cond:
+            return self._epoch_s
+
     def stats(self) -> SourceStats:
         with self._cond:
             return replace(self._stats)
@@ -348,6 +359,11 @@ class CameraSource:
         """Realtime file playback: wait until t_s (file time) is due on the monotonic clock."""
         if not clock:
             clock.extend((time.monotonic(), t_s))
+            epoch = clock[0] - clock[1]
+            with self._cond:
+                self._epoch_s = epoch
+            log_event(log, "playback_start", f"camera source {self.name}: realtime playback, source time 0 s plays at "
+                      f"monotonic {epoch:.6f} s", source=self.name, epoch_mono_s=round(epoch, 6))
             return
         due = clock[0] + (t_s - clock[1])
         with self._cond:

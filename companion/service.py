@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
@@ -74,6 +75,11 @@ def run_service(cfg: AppConfig) -> int:
                 if source.eof:
                     return
                 continue
+            epoch = source.playback_epoch_s
+            if not source.live and epoch is not None:
+                # sim/file playback stamps frames with the file's time; the bridge (fix age), the GNSS
+                # monitor and the attitude prior all run on the monotonic clock, as a live camera does
+                frame = replace(frame, t_s=frame.t_s + epoch)
             grab = source.capture_info(frame.seq)
             latency.start(frame.seq, grab.grab_t_s if grab else frame.t_s)
             status = bridge.gnss_status()

@@ -6,7 +6,10 @@ over real UDP on 127.0.0.1 (fed a good GNSS receiver, as on the ground before ta
 real AF_UNIX datagram socket as $NOTIFY_SOCKET. Checked: READY=1, WATCHDOG=1 pings that keep
 coming only because the hot path keeps beating, STATUS= lines carrying what the autopilot reports,
 our HEARTBEAT at the autopilot, SIGTERM → STOPPING=1 and exit 0 within the unit's TimeoutStopSec;
-and a bad gis.model → a one-line error naming the file and exit 2.
+and a bad gis.model → a one-line error naming the file and exit 2. Issue 7: fed what the simulated
+vehicle's receiver and AHRS report on the service's own simulated flight (in real time, on the
+flight's clock), the service bootstraps its alignment from GNSS, takes over when GNSS is lost, and the
+autopilot keeps getting 3D fixes from us that agree with the flight's truth.
 """
 from __future__ import annotations
 
@@ -17,15 +20,19 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from test_companion_supervisor import NotifyListener  # tests/ is on sys.path (no package)
 
 from gis.cache import GisCache
+from gis.geodesy import LocalFrame, ellipsoid_to_msl
 from mavlink_bridge.scenario import Flight
 from mavlink_bridge.sim_autopilot import SimAutopilot
+from mavlink_bridge.types import GnssSample, GpsFixType
 
 TERRASLAM = Path(sys.executable).with_name("terraslam")
 STALL_TIMEOUT_S = 1.0
@@ -49,12 +56,12 @@ def gis_mesh(tmp_path_factory) -> Path:
     return export_gis(gis_world, tmp_path_factory.mktemp("gis"), seed=0).mesh_ply
 
 
-def _write_config(tmp_path: Path, model: Path, port: int) -> Path:
+def _write_config(tmp_path: Path, model: Path, port: int, fps: float = 10.0, max_fix_age_s: float = 0.5) -> Path:
     cfg = tmp_path / "config.yaml"
     cfg.write_text(
         "camera:\n"
         "  source: sim\n"
-        "  fps: 10.0\n"
+        f"  fps: {fps}\n"
         f"  stall_timeout_s: {STALL_TIMEOUT_S}\n"
         "gis:\n"
         f"  model: {model}\n"
@@ -63,6 +70,7 @@ def _write_config(tmp_path: Path, model: Path, port: int) -> Path:
         f"  connect: udpout:127.0.0.1:{port}\n"
         "  autopilot: ardupilot\n"
         "  output: gps_input\n"
+        f"  max_fix_age_s: {max_fix_age_s}\n"
         "supervisor:\n"
         f"  state_dir: {tmp_path / 'state'}\n"
     )
@@ -188,6 +196,182 @@ def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path,
     # the model went into the GIS cache (CacheDirectory= in the unit)
     entries = GisCache(tmp_path / "cache").entries()
     assert [Path(e.source_path) for e in entries] == [gis_mesh] and entries[0].model_file.is_file()
+
+
+# The renderer needs ~0.3 s for a 640x480 frame on 2 cores, so the simulated camera plays in real time
+# at 2 fps (at 10 fps it would fall further behind every frame). The nominal flight's first leg is
+# straight until 27 s; then comes a 90° turn at up to ~28°/s that monocular SLAM does not track at
+# 2 fps. The GNSS bootstrap needs 30 pairs (one a frame: 15 s at 2 fps, plus SLAM initialisation).
+SIM_FPS = 2.0
+EARLIEST_LOSS_S = 20.0  # flight time: GNSS is cut 1 s after the service reports a GNSS alignment, not before this
+LATEST_LOSS_S = 23.0    # ... nor after this (the test fails: no alignment in time)
+END_S = 27.0            # the run ends before the turn
+MAX_FIX_AGE_S = 1.0     # a 2 fps camera's fix stays current until the next frame's (the 0.5 s default suits >= 3 fps)
+EPOCH_RE = re.compile(r"camera source sim: realtime playback, source time 0 s plays at monotonic ([0-9.]+) s")
+
+
+class VehicleFeed:
+    """What the simulated vehicle's receiver and AHRS report on the service's own simulated flight,
+    fed to the simulated autopilot in real time on that flight's clock: flight time t plays at
+    monotonic ``epoch_s`` + t (the service logs the epoch; CLOCK_MONOTONIC is one clock for every
+    process on the machine). GNSS goes NO_FIX from ``loss_at_s`` on, as the simulator's dropout does.
+
+    It also records every GPS_INPUT the autopilot took in, read from the simulated autopilot's record
+    of the last one: its ``estimate()`` ignores a MAVLink GPS below 5 Hz, and our output follows the
+    2 fps camera."""
+
+    def __init__(self, sim: SimAutopilot, scenario, epoch_s: float) -> None:
+        self.sim, self.scenario, self.epoch_s = sim, scenario, epoch_s
+        self.loss_at_s = float("inf")  # set by the test while the feed runs
+        self.gps_input: list[tuple[float, int, float, float, float]] = []  # (flight t at receipt, fix, lat, lon, h_acc)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="vehicle-feed", daemon=True)
+
+    def flight_t(self, mono_s: float | None = None) -> float:
+        return (time.monotonic() if mono_s is None else mono_s) - self.epoch_s
+
+    def truth(self, t_s: float) -> tuple[float, float, float]:
+        """(lat, lon, h_msl) of the vehicle at flight time t_s (body = camera centre: no lever arm)."""
+        p, _, _, _ = self.scenario.trajectory.state(t_s)
+        lat, lon, h = self.scenario.origin.enu_to_geodetic(p[0])
+        return float(lat), float(lon), float(ellipsoid_to_msl(lat, lon, h))
+
+    def _run(self) -> None:
+        gnss, att = self.scenario.gnss_samples, self.scenario.attitude_samples
+        gi = ai = 0
+        fed_g = fed_a = -1
+        last_mgps = None
+        while not self.stop.wait(0.005):
+            t = self.flight_t()
+            while ai < len(att) and att[ai].t_s <= t:
+                ai += 1
+            if ai and ai - 1 != fed_a:  # the newest attitude due (50 Hz in the scenario)
+                a = att[ai - 1]
+                self.sim.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
+                fed_a = ai - 1
+            while gi < len(gnss) and gnss[gi].t_s <= t:
+                gi += 1
+            if gi and gi - 1 != fed_g:  # the newest receiver solution due (5 Hz), stamped on the autopilot's clock
+                g = gnss[gi - 1]
+                stamp = self.epoch_s + g.t_s
+                if g.t_s < self.loss_at_s:
+                    self.sim.feed_gnss(replace(g, t_s=stamp))
+                else:
+                    self.sim.feed_gnss(GnssSample(stamp, GpsFixType.NO_FIX, 0.0, 0.0, 0.0, 0.0, 99.99, 99.99, 100.0, 100.0, 3))
+                self.sim.set_truth(*self.truth(g.t_s))
+                fed_g = gi - 1
+            with self.sim._lock:
+                m = dict(self.sim._mgps) if self.sim._mgps is not None else None
+            if m is not None and m["t"] != last_mgps:
+                last_mgps = m["t"]
+                self.gps_input.append((self.flight_t(m["t"]), int(m["fix"]), m["lat"], m["lon"], m["hacc"]))
+
+    def __enter__(self) -> "VehicleFeed":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
+
+
+def _horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
+    return float(np.hypot(ned[0], ned[1]))
+
+
+def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_mesh: Path) -> None:
+    """Issue 7: `terraslam run` against the simulated autopilot bootstraps its alignment from the
+    simulated flight's GNSS + attitude; when GNSS is lost it takes over, and the autopilot gets 3D
+    fixes from us that agree with the flight's truth within their reported accuracy."""
+    from companion.sim import make_scenario
+
+    t_test = time.monotonic()
+    scenario = make_scenario("nominal", fps=SIM_FPS)  # the service's flight: same name, seed (0) and fps
+    sim = SimAutopilot("ardupilot", params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}).start()
+    notify = TimedListener()
+    log_path = tmp_path / "service.log"
+    cfg = _write_config(tmp_path, gis_mesh, sim.port, fps=SIM_FPS, max_fix_age_s=MAX_FIX_AGE_S)
+    with open(log_path, "wb") as log_file:
+        proc = subprocess.Popen([str(TERRASLAM), "run", "--config", str(cfg)], env=_service_env(notify.lst.environ),
+                                stdout=log_file, stderr=subprocess.STDOUT)
+    feed = at_loss = rc = None
+    try:
+        # the simulated flight starts when the service opens its camera (before the bridge and READY)
+        epoch = None
+        deadline = time.monotonic() + 45.0
+        while epoch is None and time.monotonic() < deadline and proc.poll() is None:
+            m = EPOCH_RE.search(log_path.read_text())
+            epoch = float(m.group(1)) if m else None
+            time.sleep(0.02)
+        assert epoch is not None, f"no playback epoch logged (exit code {proc.poll()}):\n{log_path.read_text()[-3000:]}"
+        feed = VehicleFeed(sim, scenario, epoch).__enter__()
+        feed_start_t = feed.flight_t()  # receiver/AHRS output due before this was not fed (the bridge was not up yet)
+        assert notify.wait_for(lambda: notify.times("READY=1"), 45.0, proc), \
+            f"no READY=1 (exit code {proc.poll()}):\n{log_path.read_text()[-3000:]}"
+        ready_t = feed.flight_t(notify.times("READY=1")[0])
+
+        def aligned() -> bool:
+            return any(s.endswith("alignment gnss") for s in notify.lines("STATUS="))
+        notify.wait_for(lambda: aligned() or feed.flight_t() >= LATEST_LOSS_S - 1.0, LATEST_LOSS_S + 5.0, proc)
+        aligned_t = feed.flight_t() if aligned() else None
+        feed.loss_at_s = loss_at = min(max(EARLIEST_LOSS_S, feed.flight_t() + 1.0), LATEST_LOSS_S)
+        notify.wait_for(lambda: feed.flight_t() >= loss_at - 0.15, LATEST_LOSS_S + 5.0, proc)
+        at_loss = sim.received()  # the last look before the first NO_FIX sample
+        notify.wait_for(lambda: feed.flight_t() >= END_S, END_S - loss_at + 5.0, proc)
+        alive_before_term = proc.poll() is None
+        received = sim.received()
+        est = sim.estimate()
+        end_t = feed.flight_t()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(TIMEOUT_STOP_S + 5)
+        notify.poll(0.2)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if feed is not None:
+            feed.__exit__()
+        sim.close()
+        notify.lst.close()
+    log_text = log_path.read_text()
+    wall_s = time.monotonic() - t_test
+    texts = [t for _, t in received.statustext]
+    texts_before = [t for _, t in at_loss.statustext]
+    before_3d = [r for r in feed.gps_input if r[0] < loss_at and r[1] >= 3]
+    after = [r for r in feed.gps_input if loss_at <= r[0] <= end_t]
+    fixes_3d = [r for r in after if r[1] >= 3]
+    # A fix is for the newest frame due before it arrived (frames play at k / fps; tracking takes
+    # < 0.4 s): its error against the truth at that frame's time, and (conservative, adds the
+    # latency's along-track motion) at the time of receipt.
+    err = [(t, _horizontal_m(lat, lon, *feed.truth(np.floor(t * SIM_FPS) / SIM_FPS)[:2]),
+            _horizontal_m(lat, lon, *feed.truth(t)[:2]), hacc) for t, _, lat, lon, hacc in fixes_3d]
+    statuses = [(round(feed.flight_t(t), 1), kv[7:]) for t, m in notify.timed for kv in m.split("\n") if kv.startswith("STATUS=")]
+    statuses = [c for i, c in enumerate(statuses) if i == 0 or c[1] != statuses[i - 1][1]]
+    summary = (f"wall {wall_s:.1f} s; flight t: feed start {feed_start_t:.1f} s, READY {ready_t:.1f} s, GNSS alignment "
+               f"seen {aligned_t if aligned_t is None else round(aligned_t, 1)} s, loss {loss_at:.1f} s, end {end_t:.1f} s; "
+               f"STATUS changes {statuses}; GPS_INPUT with 3D fix before the loss {len(before_3d)}, after {len(fixes_3d)} "
+               f"of {len(after)}; accepted at loss {at_loss.accepted['GPS_INPUT']}, at end {received.accepted['GPS_INPUT']}; "
+               f"STATUSTEXT {texts}; autopilot estimate {est.source}; rejections {received.rejections[:5]}; "
+               f"after-loss fixes (t, horizontal error at frame time / at receipt, h_acc; m): "
+               f"{[tuple(round(x, 1) for x in e) for e in err]}")
+    print(summary)
+    diag = summary + "\n" + log_text[-3000:]
+
+    assert alive_before_term, f"service exited on its own with {proc.returncode}:\n{diag}"
+    assert feed_start_t < 5.0, diag  # GNSS was fed long before the bootstrap could finish
+    assert aligned_t is not None, f"no GNSS alignment by {LATEST_LOSS_S - 1.0} s of flight:\n{diag}"
+    # on good GNSS the bridge stood by; it took over when GNSS was lost
+    assert any(s.startswith("standby; GNSS good; alignment gnss") for _, s in statuses), diag
+    assert not any(t.startswith("TerraSLAM ACTIVE") for t in texts_before), diag
+    assert any(t.startswith("TerraSLAM ACTIVE: GNSS lost") for t in texts[len(texts_before):]), diag
+    # after the loss the autopilot keeps taking GPS_INPUT from us, with a 3D fix (one a frame, 2 Hz)
+    assert received.accepted["GPS_INPUT"] > at_loss.accepted["GPS_INPUT"], diag
+    assert len(fixes_3d) >= 2 * (END_S - loss_at) - 3, diag
+    # ... that is where the vehicle was, within 3x the 1-sigma accuracy we claim for it
+    assert all(e_frame <= 3.0 * hacc for _, e_frame, _, hacc in err), diag
+    assert "Traceback" not in log_text, diag
+    assert rc == 0, diag
 
 
 def _truncated_copy(src: Path, dst_dir: Path) -> Path:
