@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal, Mapping
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gis.config import AlignmentConfig, GisConfig
 from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
@@ -66,6 +66,17 @@ class AppConfig(BaseModel):
     supervisor: SupervisorConfig = SupervisorConfig()
     logging: LoggingConfig = LoggingConfig()
 
+    @model_validator(mode="after")
+    def _frame_period_fits_fix_age(self) -> "AppConfig":
+        # One fix per frame: a frame period longer than max_fix_age_s makes every fix stale before
+        # the next one arrives, so the output would flap between a fix and NO_FIX.
+        if 1.0 / self.camera.fps >= self.mavlink.max_fix_age_s:
+            raise ValueError(
+                f"camera.fps {self.camera.fps:g} gives a frame every {1.0 / self.camera.fps:.2f} s, not shorter than "
+                f"mavlink.max_fix_age_s {self.mavlink.max_fix_age_s:g}: raise the frame rate or max_fix_age_s"
+            )
+        return self
+
 
 class ConfigError(ValueError):
     """A config file or override is invalid; the message names key, value and expectation."""
@@ -75,7 +86,9 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
     lines = [f"invalid configuration ({source}):"]
     for e in err.errors():
         key = ".".join(str(p) for p in e["loc"])
-        if e["type"] == "extra_forbidden":
+        if not key and e["type"] == "value_error":  # a cross-section check: its message names the keys
+            lines.append("  " + str(e["msg"]).removeprefix("Value error, "))
+        elif e["type"] == "extra_forbidden":
             lines.append(f"  {key}: unknown key (value {e.get('input')!r}); check spelling against `terraslam config dump`")
         else:
             lines.append(f"  {key}: got {e.get('input')!r}; expected {e['msg'].lower()}")

@@ -91,3 +91,12 @@ def test_cli_bad_config_exits_nonzero_with_message(tmp_path):
     r = run_cli("config", "dump", "--config", str(write(tmp_path, {"camera": {"fps": -5}})))
     assert r.returncode == 2
     assert "camera.fps" in r.stderr and "-5" in r.stderr
+
+
+def test_frame_period_longer_than_fix_age_is_refused(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("camera:\n  fps: 1.0\n")
+    with pytest.raises(ConfigError, match=r"camera.fps 1 .* mavlink.max_fix_age_s 0.5"):
+        load_config(p, environ={})
+    p.write_text("camera:\n  fps: 1.0\nmavlink:\n  max_fix_age_s: 1.5\n")
+    assert load_config(p, environ={}).camera.fps == 1.0
