@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import FineTuner, enu_sim3
+from gis.align.fine import FineTuner, _update, enu_sim3
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -67,13 +67,20 @@ def test_fine_refuses_single_facade(city):
     reg = FineTuner(city, cfg).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(0.3, 0.3, 0.0)), 1.0, 0)
     assert reg.alignment is None
     assert "degenerate" in reg.reason or "fitness" in reg.reason
+    # a good prior does not rescue it: the data alone must observe every DoF they solve (5 here)
+    cam = city.points_enu[facade].mean(axis=0) + np.array([0.0, 0.0, 40.0])
+    reg = FineTuner(city, cfg).register(p_slam, _prior_about(cam, (0.3, 0.3, 0.0), drot_deg=(0, 0, 0), sigma_t_m=1.0),
+                                        1.0, 0, center_slam=_slam(cam))
+    assert reg.alignment is None and "degenerate" in reg.reason and reg.n_dof == 5, reg.reason
 
 
 def test_fine_rejects_wrong_place_and_big_jump(city):
     p_slam = _slam(slam_like_cloud(city, np.array([20.0, -10, 0]), 60, 2000, noise_m=0.05, seed=4))
     # guess 40 m off: the cloud lands on other buildings
     reg = FineTuner(city).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(40.0, 0, 0)), 1.0, 0)
-    assert reg.alignment is None and reg.reason
+    assert reg.alignment is None
+    # no prior to decide: restarts 3 m away find other optima (or too few inliers)
+    assert "ambiguous optimum" in reg.reason or "fitness" in reg.reason, reg.reason
     # a correct registration that moves the map more than max_jump_m is refused too
     cfg = AlignmentConfig(max_jump_m=0.5, fpfh_fallback=False)
     reg = FineTuner(city, cfg).register(p_slam, _perturbed(dscale=1.0, drot_deg=(0, 0, 0), dt=(1.5, 0, 0)), 1.0, 0)
@@ -189,3 +196,77 @@ def test_fpfh_fallback_never_accepts_a_wrong_pose(city):
         assert err.mean() < 0.1
     else:
         assert reg.reason
+
+
+def _distorted_cloud(city, c_ground, seed=11):
+    """A cloud like the simulator's real monocular SLAM (see gis/align/fine.py): 0.6 m noise, 20 %
+    clutter 1–3 m above the surfaces (cars, trees), and the whole cloud tilted 1° about its centroid
+    relative to the camera that made it. Returns (points ENU, camera ENU 80 m above the ground)."""
+    rng = np.random.default_rng(seed)
+    p = slam_like_cloud(city, c_ground, 70, 3000, noise_m=0.6, seed=seed)
+    clutter = rng.random(len(p)) < 0.2
+    p[clutter, 2] += rng.uniform(1, 3, clutter.sum())
+    m = p.mean(axis=0)
+    p = m + (p - m) @ Rotation.from_euler("x", 1.0, degrees=True).as_matrix().T
+    return p, c_ground + np.array([0.0, 0.0, 80.0])
+
+
+def _prior_about(cam_enu, dt, drot_deg=(0.0, 0.2, 0.2), sigma_t_m=1.5, sigma_rot_deg=0.5, source=AlignmentSource.GNSS):
+    """Truth perturbed about the camera (so the prior's error at the camera is |dt|) with the
+    information a GNSS bootstrap of that quality would report, centred on the camera."""
+    R = Rotation.from_euler("zyx", drot_deg, degrees=True).as_matrix()
+    dT = compose(Sim3(1.0, np.eye(3), cam_enu + np.asarray(dt, float)), compose(Sim3(1.0, R, np.zeros(3)), Sim3(1.0, np.eye(3), -cam_enu)))
+    info = np.diag(np.r_[np.full(3, np.radians(sigma_rot_deg) ** -2), np.full(3, sigma_t_m ** -2)])
+    return Alignment(compose(enu_sim3(ORIGIN), compose(dT, T_ENU_SLAM)), source, 0.0, 0, info, sigma_t_m,
+                     center_slam=_slam(cam_enu), scale_sigma=0.01)
+
+
+def test_fine_with_prior_holds_tilt_and_reports_an_honest_sigma(city):
+    """Distorted cloud + GNSS-like prior 2.3 m off: the registration (tilt held at the prior's,
+    5 DoF) improves the camera position and its σ covers the true error (≤ 3σ)."""
+    p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
+    prior = _prior_about(cam, (2.0, -1.0, 0.5))
+    e0 = np.linalg.norm(prior.T_ecef_slam.apply(_slam(cam)) - T_ECEF_SLAM.apply(_slam(cam)))
+    reg = FineTuner(city).register(_slam(p), prior, 1.0, 0, center_slam=_slam(cam))
+    assert reg.reason == "ok", reg.reason
+    assert reg.n_dof == 5
+    a = reg.alignment
+    e1 = np.linalg.norm(a.T_ecef_slam.apply(_slam(cam)) - T_ECEF_SLAM.apply(_slam(cam)))
+    assert e1 < 0.6 * e0
+    assert e1 <= 3 * a.sigma_m
+    assert a.sigma_m > 0.2  # 0.6 m noise and 1° distortion: a centimetre σ would be a lie
+    assert np.all(np.linalg.eigvalsh(a.information_6x6) > 0)
+
+
+def test_fine_refuses_vague_prior_and_prior_disagreement(city):
+    p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
+    # prior σ beyond the ICP's basin of convergence
+    reg = FineTuner(city).register(_slam(p), _prior_about(cam, (2.0, -1.0, 0.5), sigma_t_m=5.0), 1.0, 0, center_slam=_slam(cam))
+    assert reg.alignment is None and "prior too vague" in reg.reason
+    # a clean cloud 2.5 m from a prior that claims 0.1 m: both cannot be right
+    c = np.array([20.0, -10, 0])
+    clean = slam_like_cloud(city, c, 60, 3000, noise_m=0.05, seed=2)
+    cam = c + np.array([0.0, 0.0, 60.0])
+    prior = _prior_about(cam, (2.5, 0.0, 0.0), drot_deg=(0, 0, 0), sigma_t_m=0.1, sigma_rot_deg=0.1)
+    reg = FineTuner(city).register(_slam(clean), prior, 1.0, 0, center_slam=_slam(cam))
+    assert reg.alignment is None and "inconsistent with the prior" in reg.reason, reg.reason
+    assert reg.jump_m > 2.0  # the data did find the right place; the prior's claim is what fails
+
+
+def test_update_kalman_and_covariance_intersection():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(7, 7))
+    P = A @ A.T + np.eye(7)
+    M = np.eye(7)[[2, 3, 4, 5, 6]]
+    M[1:4, :2] = rng.normal(size=(3, 2))
+    R = np.diag([0.01, 0.5, 0.5, 0.5, 1e-4])
+    z = rng.normal(size=5)
+    x_k, P_k, nis = _update(z, M, R, P, correlated=False)
+    S = M @ P @ M.T + R
+    assert nis == pytest.approx(float(z @ np.linalg.solve(S, z)))
+    assert np.allclose(x_k, P @ M.T @ np.linalg.solve(S, z))
+    x_ci, P_ci, _ = _update(z, M, R, P, correlated=True)
+    # covariance intersection never claims more than the independent (Kalman) update
+    assert np.linalg.eigvalsh(P_ci - P_k)[0] > -1e-9
+    assert np.trace(P_ci[3:6, 3:6]) <= np.trace(P[3:6, 3:6]) + 1e-9
+    assert _update(np.zeros(5), M, R, P, correlated=False)[2] == 0.0

@@ -3,22 +3,59 @@
 One registration = crop the GIS model around the current position (fixed size, so the cost does
 not grow with the model), voxel-downsample both clouds, then a scale-aware point-to-plane ICP:
 
-- Correspondences: nearest GIS point (scipy cKDTree, C, vectorised queries; open3d's KDTreeFlann
-  answers one query per Python call), coarse-to-fine distances (max_correspondence_m, /2, /4).
-- Solve: open3d's point-to-plane ICP is rigid (6 DoF), but monocular SLAM scale drifts, so each
-  iteration is one Gauss–Newton step over 7 DoF (rotation, translation, log-scale) of the
-  point-to-plane cost of digital-twin Eq. 2 with a Tukey robust kernel (IRLS). Its Jacobian row
-  is Eq. 9's A_j extended by the scale column n_j·a_j. Written by hand because no library here
-  does point-to-plane with scale; it is 15 lines of vectorised numpy.
-- Poor guess (opt-in, ``fpfh_fallback``): if ICP fails the gates, retry from open3d's FPFH +
-  RANSAC global registration (§4.4 "ICP with FPFH features and normals"), then ICP again; the
-  same gates apply. Off by default: it costs seconds, and with a sparse SLAM cloud against a
-  dense model of a regular city the FPFH matches were wrong in our trials (tens of metres).
-- Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE, jump of
-  the map centre, and degeneracy: covariance σ²·H⁻¹ from the ICP Hessian H = Σ A_jᵀA_j (Eq. 8–9)
-  along its weakest position / rotation / scale direction; a single straight facade leaves a
-  direction unobserved and is refused instead of giving a confident wrong fix. The accepted
-  information is H·exp(−γ²/2)/σ² (Eq. 10's shape; absolute units instead of β/trace).
+- Correspondences: nearest GIS point (scipy cKDTree, C, vectorised queries), coarse-to-fine
+  distances (max_correspondence_m, /2, /4) with a Tukey kernel that shrinks with them
+  (max(robust_kernel_m, ½ · distance)); a fixed 0.5 m kernel gave zero weight to every residual
+  from a 3 m guess and the ICP never moved.
+- Solve: each iteration is one Gauss–Newton step of the point-to-plane cost of digital-twin Eq. 2
+  (Tukey IRLS) over rotation, translation and log-scale; the Jacobian row is Eq. 9's A_j extended
+  by the scale column n_j·a_j. Written by hand: no library here does point-to-plane with scale.
+- Which degrees of freedom: with a usable prior (an alignment with ``center_slam`` and a finite
+  information), the tilt (rotation about east and north) stays at the prior's and ICP solves
+  yaw, translation and scale (5 DoF); the prior's tilt error then enters the measured translation
+  through the lever arm to the cloud (measurement matrix M below) and the update accounts for it.
+  Reason, measured on the simulator's real monocular SLAM (nominal/stale, 800 frames): the cloud's
+  ground is tilted 0.3–1.7° relative to the trajectory that made it (vertical residual SD 1.0–1.3 m),
+  and the camera is 80–100 m from its points, so a 7-DoF fit moved the camera 0.4–1.7 m away from
+  truth even when started at truth; with tilt held, 0.1–0.6 m. Without a prior all 7 DoF are solved.
+- Poor guess (opt-in, ``fpfh_fallback``): FPFH + RANSAC global registration (§4.4), then ICP
+  again; the same gates apply. Off by default (seconds; wrong on sparse clouds in our trials).
+
+Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayesian update:
+
+- Random: σ²·H⁻¹ (Eq. 8–9, H over inliers) × RANDOM_INFLATION for neighbouring points sharing
+  their triangulation errors.
+- Systematic: a monocular cloud is not rigidly consistent with its trajectory: an offset of
+  SYS_OFFSET_FRACTION × the robust (MAD) residual scale of all matched points, and (7-DoF solves)
+  an apparent tilt of σ_MAD / (crop half-width) rad about the cloud's centroid, which moves the
+  crop centre through the lever arm. Scaled by the cloud's own residual scale, so a clean cloud
+  (synthetic, 5 cm noise) keeps a centimetre σ and a real one (σ_MAD ≈ 0.55 m inside the final
+  correspondence window) gets ≈0.4 m.
+- Basin: ICP is restarted from its own solution shifted MULTISTART_M east/north/west/south; the
+  largest disagreement of the restarts (``spread_m``) is added as a translation 1-σ. On the real
+  clouds the optimum moved 0.3–3 m between restarts (stale model: stable wrong optima 4 m from
+  truth were caught only by 3 m restarts, not by 2 m ones); the Hessian alone reported 0.05–0.2 m.
+- Update: prior (propagated to the crop centre with its lever arm, SLAM drift and scale σ; GNSS
+  priors also with model_sigma_m) and measurement z = M x + v: Kalman update
+  x = K z, P⁺ = (I − K M) P. A prior that is itself a fine registration of largely the same map
+  points is correlated with the new one by an unknown amount: covariance intersection
+  (Julier & Uhlmann 1997), ω minimising the posterior position trace, instead.
+- Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE,
+  degeneracy of the data alone (Eq. 8–9 along its weakest position / rotation / scale direction:
+  a single facade is refused, the prior does not rescue it), jump of the crop centre, and the
+  innovation χ² zᵀS⁻¹z > χ²(99.9 %, 5 or 7 DoF): the registration disagrees with the prior beyond
+  both uncertainties; a prior vaguer than MAX_PRIOR_SIGMA_M (the ICP's basin: from 6 m off it
+  converged 2–5 m from truth with a spread that looked like a right answer's) is refused, and
+  without a prior the basin check must agree to STANDALONE_MAX_SPREAD_M. Accepted: information =
+  inverse of the posterior [rot, trans] covariance in ENU at the crop centre (Eq. 10's role),
+  sigma_m = its weakest position 1-σ.
+
+Measured on the simulator's real SLAM (map snapshots every 50 frames of nominal and stale, 800
+frames; prior offset at the camera 0–4 m with a GNSS-like σ; median error at the camera):
+nominal 3.0 → 1.9 m, 4.0 → 2.1 m, 1.0 → 0.9 m; stale 3.0 → 2.6 m, 4.0 → 3.3 m, 1.0 → 1.0 m; from
+the truth it stays at 0.15 m. 0 of 239 accepted registrations were beyond 3σ (largest 2.2σ); 6 m
+priors are refused. With a FINE prior (covariance intersection) the gain is smaller still. The
+limit is the SLAM cloud (numbers above), not the solver. ≈200–250 ms per registration (5 ICPs).
 
 Pure and thread-safe: no state changes after construction except the model's lazily built grid
 index (built once, eagerly, in the constructor).
@@ -43,6 +80,18 @@ from gis.types import Alignment, AlignmentSource
 log = logging.getLogger(__name__)
 
 ICP_ITERATIONS_PER_LEVEL = 12
+KERNEL_FRACTION = 0.5          # Tukey width per level = max(robust_kernel_m, this × correspondence distance)
+RANDOM_INFLATION = 4.0         # variance factor of σ²H⁻¹ for correlated neighbouring points
+SYS_OFFSET_FRACTION = 0.75     # systematic offset 1-σ = this × σ_MAD (0.5 left young maps at 3.1σ; 0.75 → ≤ 2.3σ)
+SYS_SCALE_SIGMA = 0.005        # scale mismatch between a cloud and its trajectory (relative 1-σ)
+MULTISTART_M = 3.0             # basin check: ICP restarted from its solution shifted this far east/north/west/south
+MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 90.0, 180.0, 270.0))
+STANDALONE_MAX_SPREAD_M = 0.5  # without a prior to check against, the optimum must be unique to this
+MAX_PRIOR_SIGMA_M = 2.5        # ICP's basin on real SLAM clouds is ≈3 m: a vaguer prior cannot be refined safely
+CHI2_999 = {5: 20.52, 7: 24.32}  # χ² 99.9 % quantiles by degrees of freedom
+UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
+ALL_DOF = (0, 1, 2, 3, 4, 5, 6)   # [rot e, rot n, rot u, t e, t n, t u, log-scale]
+TILT_HELD_DOF = (2, 3, 4, 5, 6)   # yaw, translation, scale
 
 
 @dataclass(frozen=True)
@@ -59,15 +108,21 @@ class Registration:
     n_target: int = 0
     used_fpfh: bool = False
     wall_ms: float = 0.0
+    nis: float = 0.0          # innovation χ² against the prior (0 without a usable prior)
+    spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check)
+    sigma_mad_m: float = 0.0  # robust residual scale of all matched points
+    n_dof: int = 7            # degrees of freedom the ICP solved
 
 
 @dataclass(frozen=True)
 class _Icp:
     T: Sim3                   # increment in centred ENU coordinates
     fitness: float
-    rmse_m: float
-    H7: np.ndarray            # 7x7 Gauss–Newton Hessian [rot, trans, log-scale] at the crop centre
+    rmse_m: float             # inlier RMSE (|r| < inlier_distance_m)
+    H7: np.ndarray            # 7x7 Gauss–Newton Hessian [rot, trans, log-scale] at the crop centre (inliers)
     n_inliers: int
+    centroid: np.ndarray      # inlier centroid, centred coordinates (lever arm of the systematic tilt)
+    sigma_mad_m: float        # 1.4826·MAD of all matched residuals (not truncated at the inlier distance)
 
 
 def enu_sim3(origin: LocalFrame) -> Sim3:
@@ -118,44 +173,104 @@ class FineTuner:
         spacing = float(np.median(tree.query(tgt[:: max(1, len(tgt) // 300)], k=2)[0][:, 1]))
         min_corr = 1.5 * spacing
 
-        icp = _icp(src, tgt, tgt_n, tree, Sim3.identity(), cfg, min_corr)
-        reason = self._gate(icp, cfg)
+        prior = self._prior_at(initial, c, T_enu_slam, cfg)
+        if prior is not None:
+            sig_prior = float(np.sqrt(np.linalg.eigvalsh(prior[3:5, 3:5])[-1]))
+            if sig_prior > MAX_PRIOR_SIGMA_M:
+                return Registration(None, f"prior too vague: horizontal 1-σ {sig_prior:.1f} m at the crop centre > "
+                                          f"{MAX_PRIOR_SIGMA_M} m (ICP's convergence basin)", n_source=len(src), n_target=len(tgt))
+        free = TILT_HELD_DOF if prior is not None else ALL_DOF
+        icp = _icp(src, tgt, tgt_n, tree, Sim3.identity(), cfg, min_corr, free)
+        reason = self._gate(icp, cfg, free)
         used_fpfh = False
         if reason and cfg.fpfh_fallback:
             guess = _fpfh_guess(src, tgt, tgt_n, cfg)
             if guess is not None:
-                icp2 = _icp(src, tgt, tgt_n, tree, guess, cfg, min_corr)
-                reason2 = self._gate(icp2, cfg)
+                icp2 = _icp(src, tgt, tgt_n, tree, guess, cfg, min_corr, ALL_DOF)
+                reason2 = self._gate(icp2, cfg, ALL_DOF)
                 if not reason2 or icp2.fitness > icp.fitness:
-                    icp, reason, used_fpfh = icp2, reason2, True
-        sigmas = _sigmas(icp, cfg)
+                    icp, reason, used_fpfh, free = icp2, reason2, True, ALL_DOF
+        spread = 0.0
+        if not reason:  # basin check: restarts from shifted guesses must find the same optimum
+            for dist_m, ang_deg in MULTISTARTS:
+                ang = np.radians(ang_deg)
+                g = compose(Sim3(1.0, np.eye(3), dist_m * np.array([np.cos(ang), np.sin(ang), 0.0])), icp.T)
+                other = _icp(src, tgt, tgt_n, tree, g, cfg, min_corr, free)
+                spread = max(spread, float(np.linalg.norm(other.T.t - icp.T.t)))
+
+        z = _vec(icp.T)[list(free)]
+        R = _measurement_cov(icp, cfg, free, spread)
+        M = _measurement_matrix(free, icp.centroid)
+        nis = 0.0
+        if prior is None:  # the registration stands alone (7 DoF: M = I)
+            x_post, P_post = _vec(icp.T), R
+        else:
+            x_post, P_post, nis = _update(z, M, R, prior, correlated=initial.source is AlignmentSource.FINE)
+        sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
         jump = float(np.linalg.norm(icp.T.t))
-        common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sigmas[0],
-                      n_source=len(src), n_target=len(tgt), used_fpfh=used_fpfh)
+        common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
+                      n_target=len(tgt), used_fpfh=used_fpfh, nis=nis, spread_m=spread,
+                      sigma_mad_m=icp.sigma_mad_m, n_dof=len(free))
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
+        if not reason and prior is None and spread > STANDALONE_MAX_SPREAD_M:
+            reason = (f"ambiguous optimum: restarts {MULTISTART_M} m away converge {spread:.2f} m apart "
+                      f"(> {STANDALONE_MAX_SPREAD_M} m) and there is no prior to decide")
+        chi2 = CHI2_999[len(free)]
+        if not reason and nis > chi2:
+            reason = (f"inconsistent with the prior alignment: innovation χ² {nis:.1f} > {chi2} "
+                      f"({len(free)} DoF, 99.9 %; ICP moved the crop centre {jump:.2f} m)")
         if reason:
             return Registration(None, reason, wall_ms=1e3 * (time.perf_counter() - t0), **common)
 
         # T_enu_slam' = T(+c) ∘ ΔT ∘ T(−c) ∘ T_enu_slam
         T_c = Sim3(1.0, np.eye(3), c)
-        T_enu_slam_new = compose(compose(T_c, compose(icp.T, T_c.inverse())), T_enu_slam)
+        T_enu_slam_new = compose(compose(T_c, compose(_sim3(x_post), T_c.inverse())), T_enu_slam)
         T_ecef_slam = compose(self._T_ecef_enu, T_enu_slam_new)
         c_new_slam = T_enu_slam_new.inverse().apply(c)
         alignment = Alignment(
             T_ecef_slam=T_ecef_slam, source=AlignmentSource.FINE, t_s=t_s, reset_counter=reset_counter,
-            information_6x6=self._information_at_center(icp, c, cfg), sigma_m=sigmas[0],
+            information_6x6=self._information_at_center(P_post, c), sigma_m=sig_post,
             fitness=icp.fitness, rmse_m=icp.rmse_m, n_points=icp.n_inliers, map_id=map_id,
-            center_slam=c_new_slam, scale_sigma=sigmas[2],
+            center_slam=c_new_slam, scale_sigma=float(np.sqrt(P_post[6, 6])),
         )
         return Registration(alignment, "ok", wall_ms=1e3 * (time.perf_counter() - t0), **common)
 
-    def _gate(self, icp: _Icp, cfg: AlignmentConfig) -> str:
+    def _prior_at(self, initial: Alignment, c_enu: np.ndarray, T_enu_slam: Sim3, cfg: AlignmentConfig) -> np.ndarray | None:
+        """7x7 covariance of the prior's [rot, trans, log-scale] error at the crop centre (model ENU
+        axes); None when the prior carries no information about a known point (no center_slam, as
+        in gis.globalizer) or its information is not positive definite."""
+        if initial.center_slam is None:
+            return None
+        info = np.asarray(initial.information_6x6, float)
+        w, V = np.linalg.eigh(0.5 * (info + info.T))
+        if not np.all(np.isfinite(w)) or w[0] <= 1e-12 * max(w[-1], 1e-12):
+            return None
+        c0 = T_enu_slam.apply(np.asarray(initial.center_slam, float).reshape(3))
+        B = np.kron(np.eye(2), self._R_enuC_enuO(c0))
+        cov6 = B.T @ ((V / w) @ V.T) @ B  # model ENU axes
+        d = c_enu - c0  # lever arm: (ω, τ) about c0 moves c by τ + ω × d
+        J = np.block([[np.eye(3), np.zeros((3, 3))], [-_skew(d), np.eye(3)]])
+        cov = np.zeros((7, 7))
+        cov[:6, :6] = J @ cov6 @ J.T
+        dist = float(np.linalg.norm(d))
+        iso = (cfg.slam_drift_fraction * dist) ** 2 + (initial.scale_sigma * dist) ** 2
+        if initial.source is AlignmentSource.GNSS:  # GNSS vs the model: the model's georeference error
+            iso += cfg.model_sigma_m**2
+        cov[3:6, 3:6] += iso * np.eye(3)
+        cov[6, 6] = initial.scale_sigma**2 if initial.scale_sigma > 0 else UNKNOWN_VAR
+        return cov
+
+    def _R_enuC_enuO(self, c_enu: np.ndarray) -> np.ndarray:
+        lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c_enu))
+        return LocalFrame(float(lat), float(lon)).R_ecef_enu.T @ self.model.origin.R_ecef_enu
+
+    def _gate(self, icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...]) -> str:
         if icp.fitness < cfg.min_fitness:
             return f"fitness {icp.fitness:.2f} < min_fitness {cfg.min_fitness}"
         if icp.rmse_m > cfg.max_rmse_m:
             return f"inlier RMSE {icp.rmse_m:.2f} m > max_rmse_m {cfg.max_rmse_m}"
-        sig_p, sig_r, sig_s = _sigmas(icp, cfg)
+        sig_p, sig_r, sig_s = _sigmas(icp, cfg, free)
         if sig_p > cfg.max_sigma_m:
             return f"degenerate geometry: position 1-σ {sig_p:.2g} m > max_sigma_m {cfg.max_sigma_m} (e.g. a single facade)"
         if np.degrees(sig_r) > cfg.max_sigma_rot_deg:
@@ -164,36 +279,95 @@ class FineTuner:
             return f"degenerate geometry: scale 1-σ {sig_s:.2g} > max_sigma_scale {cfg.max_sigma_scale}"
         return ""
 
-    def _information_at_center(self, icp: _Icp, c_enu: np.ndarray, cfg: AlignmentConfig) -> np.ndarray:
-        """Eq. 10-shaped information of [rot, trans] in the ENU frame at the crop centre."""
-        sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
-        info = icp.H7[:6, :6] * np.exp(-(icp.rmse_m**2) / 2) / sigma2
-        lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c_enu))
-        R = LocalFrame(float(lat), float(lon)).R_ecef_enu.T @ self.model.origin.R_ecef_enu  # R_enuC_enuO
-        B = np.kron(np.eye(2), R)
-        return B @ info @ B.T
+    def _information_at_center(self, cov7: np.ndarray, c_enu: np.ndarray) -> np.ndarray:
+        """Information of [rot, trans] (scale marginalised) in the ENU frame at the crop centre."""
+        B = np.kron(np.eye(2), self._R_enuC_enuO(c_enu))
+        return B @ np.linalg.inv(cov7[:6, :6]) @ B.T
 
 
-def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
-    """Weakest 1-σ of (position m, rotation rad, relative scale) from σ²·H⁻¹ (inf if singular)."""
+def _sigmas(icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...] = ALL_DOF) -> tuple[float, float, float]:
+    """Weakest 1-σ of (position m, rotation rad, relative scale) of the solved DoF from σ²·H⁻¹
+    (Eq. 8–9, data alone; inf if singular). Degeneracy test only: not the reported uncertainty."""
     sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
-    H = icp.H7
+    f = list(free)
+    H = icp.H7[np.ix_(f, f)]
     w, V = np.linalg.eigh(H)
     if w[0] <= 1e-9 * max(w[-1], 1e-12):
         return float("inf"), float("inf"), float("inf")
-    cov = sigma2 * (V / w) @ V.T
+    cov = np.zeros((7, 7))
+    cov[np.ix_(f, f)] = sigma2 * (V / w) @ V.T
     sig_p = float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1]))
     sig_r = float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))
     return sig_p, sig_r, float(np.sqrt(cov[6, 6]))
 
 
+def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...], spread_m: float) -> np.ndarray:
+    """Covariance of the ICP solution over the solved DoF (module doc: random + systematic + basin)."""
+    f = list(free)
+    sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
+    w, V = np.linalg.eigh(icp.H7[np.ix_(f, f)])
+    if w[0] <= 1e-9 * max(w[-1], 1e-12):
+        return np.eye(len(f)) * UNKNOWN_VAR
+    cov = np.zeros((7, 7))
+    cov[np.ix_(f, f)] = RANDOM_INFLATION * sigma2 * (V / w) @ V.T
+    s_mad = max(icp.sigma_mad_m, cfg.sigma_floor_m)
+    sig_tilt = s_mad / (cfg.crop_size_m / 2)  # apparent rotation of the cloud about its centroid, rad
+    if 0 in free:  # tilt solved: it carries the cloud's apparent tilt, and moves the centre by ω × (c − p̄)
+        A = np.vstack([np.eye(3), _skew(icp.centroid), np.zeros((1, 3))])
+        cov += sig_tilt**2 * A @ A.T
+    else:
+        cov[2, 2] += sig_tilt**2
+    cov[3:6, 3:6] += ((SYS_OFFSET_FRACTION * s_mad) ** 2 + spread_m**2) * np.eye(3)
+    cov[6, 6] += SYS_SCALE_SIGMA**2
+    return cov[np.ix_(f, f)]
+
+
+def _measurement_matrix(free: tuple[int, ...], centroid: np.ndarray) -> np.ndarray:
+    """M with z = M x: the solved DoF of the increment; with tilt held at the prior's, the cloud
+    shift that a tilt error ω_t would need, ω_t × (p̄ − c), is absorbed by the solved translation."""
+    f = list(free)
+    M = np.eye(7)[f]
+    if 0 not in free:
+        rows = [f.index(i) for i in (3, 4, 5)]
+        M[np.ix_(rows, [0, 1])] = -_skew(centroid)[:, :2]  # ω × p̄ = −[p̄]× ω
+    return M
+
+
+def _update(z: np.ndarray, M: np.ndarray, R: np.ndarray, P: np.ndarray, correlated: bool):
+    """Posterior of the increment x (prior N(0, P)) given z = M x + v, v ~ N(0, R).
+
+    Independent prior: Kalman update. A prior that is an earlier registration of largely the same
+    map points (correlated by an unknown amount): covariance intersection (Julier & Uhlmann 1997),
+    P⁺⁻¹ = ω P⁻¹ + (1 − ω) Mᵀ R⁻¹ M, ω minimising the posterior position trace.
+    Returns (x⁺, P⁺, innovation χ² = zᵀ (M P Mᵀ + R)⁻¹ z)."""
+    S = M @ P @ M.T + R
+    nis = float(z @ np.linalg.solve(S, z))
+    if not correlated:
+        K = P @ M.T @ np.linalg.inv(S)
+        x = K @ z
+        Pp = (np.eye(len(P)) - K @ M) @ P
+    else:
+        Pi, Ri = np.linalg.inv(P), np.linalg.inv(R)
+        best = None
+        for om in np.linspace(0.05, 0.95, 19):
+            C = np.linalg.inv(om * Pi + (1 - om) * M.T @ Ri @ M)
+            tr = float(np.trace(C[3:6, 3:6]))
+            if best is None or tr < best[0]:
+                best = (tr, om, C)
+        _, om, Pp = best
+        x = Pp @ ((1 - om) * M.T @ Ri @ z)
+    return x, 0.5 * (Pp + Pp.T), nis
+
+
 def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0: Sim3, cfg: AlignmentConfig,
-         min_corr_m: float) -> _Icp:
-    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in centred coordinates."""
+         min_corr_m: float, free: tuple[int, ...] = ALL_DOF) -> _Icp:
+    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in centred coordinates over the
+    DoF in ``free`` (indices of [rot, trans, log-scale]; the others stay at T0's)."""
     T = T0
-    k = cfg.robust_kernel_m
+    f = list(free)
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
+        k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
             x = T.apply(src)
             d, j = tree.query(x, distance_upper_bound=max_d)
@@ -203,18 +377,18 @@ def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0:
             x, n, b = x[ok], tgt_n[j[ok]], tgt[j[ok]]
             r = np.einsum("ij,ij->i", n, x - b)
             w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
-            J = np.hstack([np.cross(x, n), n, np.einsum("ij,ij->i", n, x)[:, None]])  # Eq. 9 + scale column
+            J = np.hstack([np.cross(x, n), n, np.einsum("ij,ij->i", n, x)[:, None]])[:, f]  # Eq. 9 + scale column
             H = (J * w[:, None]).T @ J
             g = (J * w[:, None]).T @ r
+            delta = np.zeros(7)
             try:
-                delta = -np.linalg.solve(H + 1e-6 * np.trace(H) / 7 * np.eye(7), g)
+                delta[f] = -np.linalg.solve(H + 1e-6 * np.trace(H) / len(f) * np.eye(len(f)), g)
             except np.linalg.LinAlgError:
                 break
-            dT = Sim3(float(np.exp(delta[6])), Rotation.from_rotvec(delta[:3]).as_matrix(), delta[3:6])
-            T = compose(dT, T)
+            T = compose(_sim3(delta), T)
             if np.linalg.norm(delta[:3]) < 1e-6 and np.linalg.norm(delta[3:6]) < 1e-5 and abs(delta[6]) < 1e-6:
                 break
-    # Final inliers, RMSE and the Hessian of Eq. 8–9 (unweighted, inliers only).
+    # Final inliers, RMSE, robust scale and the Hessian of Eq. 8–9 (unweighted, inliers only).
     x = T.apply(src)
     d, j = tree.query(x, distance_upper_bound=max(cfg.max_correspondence_m / 4, min_corr_m))
     ok = np.isfinite(d)
@@ -223,8 +397,24 @@ def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0:
     inl = np.abs(r) < cfg.inlier_distance_m
     fitness = float(inl.sum()) / len(src)
     rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
+    mad = float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("inf")
     J = np.hstack([np.cross(x[inl], n[inl]), n[inl], np.einsum("ij,ij->i", n[inl], x[inl])[:, None]])
-    return _Icp(T, fitness, rmse, J.T @ J, int(inl.sum()))
+    cen = x[inl].mean(axis=0) if inl.any() else np.zeros(3)
+    return _Icp(T, fitness, rmse, J.T @ J, int(inl.sum()), cen, mad)
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """[a]× with [a]× b = a × b."""
+    return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def _vec(T: Sim3) -> np.ndarray:
+    """[rotation vector, translation, log-scale] of an increment in centred coordinates."""
+    return np.r_[Rotation.from_matrix(T.R).as_rotvec(), T.t, np.log(T.scale)]
+
+
+def _sim3(d: np.ndarray) -> Sim3:
+    return Sim3(float(np.exp(d[6])), Rotation.from_rotvec(d[:3]).as_matrix(), np.asarray(d[3:6], float))
 
 
 def _voxel(p: np.ndarray, voxel_m: float) -> np.ndarray:
