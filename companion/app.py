@@ -11,9 +11,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -25,7 +25,6 @@ from gis.globalizer import Globalizer
 from gis.loaders import load_model
 from gis.model import GisModel
 from gis.types import Alignment
-from mavlink_bridge.config import SwitchingConfig
 from mavlink_bridge.monitor import GnssMonitor
 from mavlink_bridge.types import GnssQuality
 from slam.types import CameraModel
@@ -169,60 +168,80 @@ class DemoOptions:
     scenario: str = "gnss_loss"
 
 
-def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
-             progress: Callable[[int, int, str], None] | None = None) -> dict:
-    """The embedded default: simulated flight, GNSS lost mid-flight, our fixes take over."""
-    from companion.sim import make_scenario
-    from companion.sim.gis_export import export_gis
-    from companion.sim.gnss import GnssEvent, GnssSpec, parse_timeline
+@dataclass
+class SimFlight:
+    """What one simulated flight through the real pipeline produced (fly_sim)."""
+
+    run: RunLog
+    alignments: list[Alignment]        # every alignment the localizer adopted, in order
+    map_points_slam: np.ndarray        # the final SLAM map
+    last_map_key: tuple[int, int] | None  # (map_id, reset_counter) of the last tracked frame
+    received: object                   # the simulated autopilot's counters (SimAutopilot.received())
+    bridge_sent: dict
+
+
+def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel, T_body_cam: np.ndarray,
+            model: GisModel | None, autopilot: str | None = None, output: str | None = None,
+            progress: Callable[[int, int, str], None] | None = None) -> SimFlight:
+    """Frames (SimStep-like: frame, gnss, attitude, truth) → Localizer → Bridge → simulated autopilot.
+
+    The one loop behind ``demo`` and ``bench``: the autopilot (UDP 127.0.0.1) is fed the vehicle's
+    GNSS and attitude, the bridge judges GNSS and relays the attitude, the localizer tracks and
+    globalises, the fix goes back over MAVLink. A simulated clock advances with the frames, so every
+    rate, timeout and hysteresis is judged in flight time while the loop runs as fast as it can.
+    """
     from mavlink_bridge.bridge import Bridge
     from mavlink_bridge.sim_autopilot import SimAutopilot
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    scenario = make_scenario(opts.scenario, opts.seed, opts.n_frames, fps=opts.fps,
-                             gnss=GnssSpec(events=parse_timeline(opts.gnss_timeline) if opts.gnss_timeline
-                                           else (GnssEvent("dropout", opts.gnss_loss_at_s),)))
-    gis_world, _ = scenario.gis
-    files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
-    model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
-
+    autopilot = autopilot or cfg.mavlink.autopilot
+    output = output or (cfg.mavlink.output if autopilot == cfg.mavlink.autopilot
+                        else ("gps_input" if autopilot == "ardupilot" else "odometry"))
     clock = SimClock()
-    output = cfg.mavlink.output if opts.autopilot == cfg.mavlink.autopilot else ("gps_input" if opts.autopilot == "ardupilot" else "odometry")
-    params = {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if opts.autopilot == "ardupilot" else {}
-    autopilot = SimAutopilot(opts.autopilot, params=params, clock=clock).start()
-    mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{autopilot.port}", "autopilot": opts.autopilot, "output": output})
+    params = {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if autopilot == "ardupilot" else {}
+    ap = SimAutopilot(autopilot, params=params, clock=clock).start()
+    mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
-    localizer = build_localizer(cfg, scenario.camera, scenario.T_body_cam, model)
-    run = RunLog()
+    localizer = build_localizer(cfg, camera, T_body_cam, model)
+    out_msg = output.upper()  # the fix message; heartbeats etc. are not fixes
+    run, alignments, last_key = RunLog(), [], None
     try:
-        for k, step in enumerate(scenario.steps()):
+        for k, step in enumerate(steps):
+            if k >= n_frames:
+                break
             for a in step.attitude:  # before the clock moves: ATTITUDE stamped at t carries the attitude at t
-                autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
+                ap.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
             clock.advance_to(step.frame.t_s)
             for s in step.gnss:
-                autopilot.feed_gnss(s)
+                ap.feed_gnss(s)
                 run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
             truth = step.truth
-            autopilot.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
+            if truth is not None:
+                ap.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
             att = _wait_attitude(bridge, step.frame.t_s)
             status = bridge.gnss_status()
-            t_capture = time.perf_counter()
-            item = PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD, attitude_prior(att))
-            rec = localizer.process(item)
+            sent_before = bridge.stats().sent[out_msg]
+            t_capture = time.perf_counter()  # the frame exists (rendered / decoded) from here on
+            rec = localizer.process(PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD, attitude_prior(att)))
             t_tracked = time.perf_counter()
             bridge.vision_check(localizer.gnss_inconsistency())
             bridge.submit_fix(rec.fix)
             t_wire = time.perf_counter()
             run.records.append(rec)
-            run.truth_ecef_m[rec.seq] = truth.p_ecef_m
             run.wall_track_ms.append((t_tracked - t_capture) * 1e3)
-            if rec.fix is not None:
+            if bridge.stats().sent[out_msg] > sent_before:  # this fix's bytes were written to the socket
                 run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
-            est = autopilot.estimate()
-            if est.valid:
-                run.autopilot_err_m.append((step.frame.t_s, _horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
+            if truth is not None:
+                run.truth_ecef_m[rec.seq] = truth.p_ecef_m
+                est = ap.estimate()
+                if est.valid:
+                    run.autopilot_err_m.append((step.frame.t_s, _horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
+            a = localizer.alignment
+            if a is not None and (not alignments or a is not alignments[-1]):
+                alignments.append(a)
+            if rec.pose.state.has_pose:
+                last_key = (rec.pose.map_id, rec.pose.reset_counter)
             if progress is not None:
-                progress(k + 1, scenario.n_frames, bridge.state.value)
+                progress(k + 1, n_frames, bridge.state.value)
         time.sleep(0.2)  # let the last UDP messages land before reading the autopilot's counters
         run.switch_events = [(e.t_s, f"{e.from_state.value} → {e.to_state.value}: {e.reason}") for e in bridge.events()]
         active = [e for e in bridge.events() if e.to_state.value == "active"]
@@ -231,13 +250,37 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
         if localizer.bootstrap.last_refusal:
             run.alignment_events.append((run.records[-1].t_s if run.records else 0.0,
                                          f"last GNSS bootstrap refusal: {localizer.bootstrap.last_refusal}"))
-        run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
-        received = autopilot.received()
-        bridge_stats = bridge.stats()
+        if localizer.worker is not None:  # let a registration in flight finish so its time counts
+            deadline = time.monotonic() + 30.0
+            while localizer.worker.busy.is_set() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            run.finetune_ms = list(localizer.worker.wall_ms)
+        map_points = np.asarray(localizer.slam.map_points().points_slam, float).reshape(-1, 3)
+        received, sent = ap.received(), dict(bridge.stats().sent)
     finally:
         localizer.close()
         bridge.close()
-        autopilot.close()
+        ap.close()
+    return SimFlight(run, alignments, map_points, last_key, received, sent)
+
+
+def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
+             progress: Callable[[int, int, str], None] | None = None) -> dict:
+    """The embedded default: simulated flight, GNSS lost mid-flight, our fixes take over."""
+    from companion.sim import make_scenario
+    from companion.sim.gis_export import export_gis
+    from companion.sim.gnss import GnssEvent, GnssSpec, parse_timeline
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scenario = make_scenario(opts.scenario, opts.seed, opts.n_frames, fps=opts.fps,
+                             gnss=GnssSpec(events=parse_timeline(opts.gnss_timeline) if opts.gnss_timeline
+                                           else (GnssEvent("dropout", opts.gnss_loss_at_s),)))
+    gis_world, _ = scenario.gis
+    files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
+    model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
+    flight = fly_sim(cfg, scenario.steps(), scenario.n_frames, scenario.camera, scenario.T_body_cam, model,
+                     autopilot=opts.autopilot, progress=progress)
+    run, received = flight.run, flight.received
     summary = summarize(run, name=f"demo ({opts.scenario}, {opts.autopilot})")
     summary["autopilot"] = {
         "personality": opts.autopilot,
@@ -246,7 +289,7 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
         "rejections": [f"{t:.1f}s {m}: {r}" for t, m, r in received.rejections[:10]],
         "sources_after_takeover": sorted({s for t, _, s in run.autopilot_err_m if run.takeover_t_s is not None and t >= run.takeover_t_s}),
     }
-    summary["bridge_sent"] = dict(getattr(bridge_stats, "sent", {}) or {})
+    summary["bridge_sent"] = flight.bridge_sent
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, scenario.origin, "TerraSLAM demo")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title="TerraSLAM demo")
     return summary

@@ -31,12 +31,12 @@ from typing import Callable
 import numpy as np
 import psutil
 
-from companion.app import RunLog, SimClock, build_localizer, summarize
+from companion.app import RunLog, fly_sim, summarize
 from companion.config import AppConfig
-from companion.evaluate import fix_errors, stats
+from companion.evaluate import fix_errors
 from gis.align.fine import enu_sim3
 from gis.align.rough import alignment_error_m
-from gis.geodesy import LocalFrame, geodetic_to_ecef
+from gis.geodesy import LocalFrame
 from gis.model import GisModel
 from gis.sim3 import compose, umeyama
 from gis.types import Alignment, AlignmentSource
@@ -146,68 +146,10 @@ class BenchRun:
 
 def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.ndarray, model: GisModel,
                  progress: Callable[[int, int, str], None] | None = None) -> tuple[RunLog, list[Alignment], np.ndarray, tuple[int, int] | None]:
-    """Drive Localizer + Bridge + simulated autopilot (UDP 127.0.0.1) over ``steps`` (SimStep-like:
-    frame, gnss, attitude, truth). The loop of ``companion.app.run_demo``, keeping the RunLog."""
-    from mavlink_bridge.bridge import Bridge
-    from mavlink_bridge.sim_autopilot import SimAutopilot
-    from mavlink_bridge.types import GnssQuality
-    from companion.pipeline import PipelineInput
-
-    clock = SimClock()
-    autopilot = SimAutopilot(cfg.mavlink.autopilot, clock=clock,
-                             params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if cfg.mavlink.autopilot == "ardupilot" else {}).start()
-    bridge = Bridge(cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{autopilot.port}"}), cfg.switching, clock=clock).start()
-    localizer = build_localizer(cfg, camera, T_body_cam, model)
-    out_msg = cfg.mavlink.output.upper()  # the fix message (GPS_INPUT, ODOMETRY, ...); heartbeats etc. are not fixes
-    run, alignments = RunLog(), []
-    last_key = None
-    try:
-        for k, step in enumerate(steps):
-            if k >= n_frames:
-                break
-            clock.advance_to(step.frame.t_s)
-            for s in step.gnss:
-                autopilot.feed_gnss(s)
-                run.gnss_ecef_m.append((s.t_s, geodetic_to_ecef(s.lat_deg, s.lon_deg, s.h_ellipsoid_m), s.fix_type >= 3))
-            for a in step.attitude:
-                autopilot.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
-            if step.truth is not None:
-                autopilot.set_truth(step.truth.lat_deg, step.truth.lon_deg, step.truth.h_msl_m)
-            status = bridge.gnss_status()
-            sent_before = bridge.stats().sent[out_msg]
-            t_capture = time.perf_counter()   # the frame exists (rendered / decoded) from here on
-            rec = localizer.process(PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD))
-            t_tracked = time.perf_counter()
-            bridge.submit_fix(rec.fix)
-            t_wire = time.perf_counter()
-            run.records.append(rec)
-            run.wall_track_ms.append((t_tracked - t_capture) * 1e3)
-            if bridge.stats().sent[out_msg] > sent_before:  # this fix's bytes were written to the socket
-                run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
-            if step.truth is not None:
-                run.truth_ecef_m[rec.seq] = step.truth.p_ecef_m
-            a = localizer.alignment
-            if a is not None and (not alignments or a is not alignments[-1]):
-                alignments.append(a)
-            if rec.pose.state.has_pose:
-                last_key = (rec.pose.map_id, rec.pose.reset_counter)
-            if progress is not None:
-                progress(k + 1, n_frames, bridge.state.value)
-        run.switch_events = [(e.t_s, f"{e.from_state.value} → {e.to_state.value}: {e.reason}") for e in bridge.events()]
-        active = [e for e in bridge.events() if e.to_state.value == "active"]
-        run.takeover_t_s = active[0].t_s if active else None
-        run.alignment_events = list(localizer.events)
-        if localizer.worker is not None:  # let a registration in flight finish so its time counts
-            deadline = time.monotonic() + 30.0
-            while localizer.worker.busy.is_set() and time.monotonic() < deadline:
-                time.sleep(0.05)
-            run.finetune_ms = list(localizer.worker.wall_ms)
-        map_points = np.asarray(localizer.slam.map_points().points_slam, float).reshape(-1, 3)
-    finally:
-        localizer.close()
-        bridge.close()
-        autopilot.close()
-    return run, alignments, map_points, last_key
+    """The demo's loop (``companion.app.fly_sim``: Localizer + Bridge + simulated autopilot on UDP
+    127.0.0.1) over ``steps``; returns the RunLog, the adopted alignments, the final map and its key."""
+    f = fly_sim(cfg, steps, n_frames, camera, T_body_cam, model, progress=progress)
+    return f.run, f.alignments, f.map_points_slam, f.last_map_key
 
 
 def first_turn_s(scenario, min_turn_deg: float = 60.0) -> float:
