@@ -163,10 +163,10 @@ def first_turn_s(scenario, min_turn_deg: float = 60.0) -> float:
 def bench_window_s(scenario, n_frames: int) -> tuple[float, float]:
     """(start, GNSS loss) flight times of a benchmark run of n_frames.
 
-    The GNSS bootstrap (pipeline.BootstrapCollector, digital-twin §III-D) refuses a straight-line
-    baseline (yaw unobservable), so the run starts 10 s before the flight's first turn and GNSS is
-    lost after 70 % of the run: SLAM is aligned through the turn while GNSS is good, then carries on
-    alone. Both are clamped to the flight."""
+    The run starts 10 s before the flight's first turn (the GNSS geometry of a turn sharpens the
+    bootstrap's heading beyond the compass's, pipeline.BootstrapCollector) and GNSS is lost after
+    70 % of the run: SLAM is aligned through the turn while GNSS is good, then carries on alone.
+    Both are clamped to the flight."""
     duration_s = n_frames / scenario.fps
     start = min(max(0.0, first_turn_s(scenario) - 10.0), scenario.duration_s - duration_s)
     start = math.floor(max(0.0, start) * scenario.fps) / scenario.fps
