@@ -5,7 +5,8 @@ Hot path, one thread, top to bottom per frame::
     frame ─▶ slam.track ─SlamPose─▶ globalizer.fix ─GlobalFix─▶ sink (MAVLink bridge, recorder)
 
 Background: SLAM's own local-mapping/loop-closing threads, and one fine-tuning worker that every
-``alignment.finetune_every_frames`` frames registers the current SLAM map to the GIS model
+``alignment.finetune_every_frames`` frames (``finetune_every_frames_denied`` while GNSS is not
+trusted) registers the current SLAM map to the GIS model
 (TerraSLAM §4.4) and hands the accepted T_fine to the Globalizer. Until an alignment exists, good
 GNSS bootstraps one (digital-twin paper §III-D): pairs of (SLAM camera centre, GNSS position) are
 collected while GNSS is trusted and fitted with a similarity.
@@ -300,11 +301,13 @@ class Localizer:
     """SLAM + alignment + globalisation for one camera; ``process`` is the per-frame hot path."""
 
     def __init__(self, slam, tuner: FineTuner | None, globalizer: Globalizer, finetune_every_frames: int = 200,
+                 finetune_every_frames_denied: int = 50,
                  initial_alignment: Alignment | None = None, bootstrap: BootstrapCollector | None = None,
                  min_points_for_finetune: int = 200):
         self.slam = slam
         self.globalizer = globalizer
         self.every = finetune_every_frames
+        self.every_denied = finetune_every_frames_denied
         self.min_points = min_points_for_finetune
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
@@ -365,16 +368,20 @@ class Localizer:
                 if usable and item.gnss_trusted:
                     self.bootstrap.append(pair)
             self._frames_since_boot += 1
-            gnss_sourced = alignment is None or alignment.source is AlignmentSource.GNSS
-            if (item.gnss_trusted and gnss_sourced and self.bootstrap.ready()
+            if (item.gnss_trusted and self.bootstrap.ready()
                     and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
                 self._frames_since_boot = 0
                 boot = self.bootstrap.solve()
-                if boot is not None:
+                c = pose.T_slam_cam[:3, 3]
+                # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
+                # (the older alignment has drifted away from the current pose meanwhile).
+                if boot is not None and (alignment is None or alignment.source is AlignmentSource.GNSS
+                                         or self._sigma_here_m(boot, c) <= self._sigma_here_m(alignment, c)):
                     self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
                     alignment = boot
             self._frames_since_tune += 1
-            if alignment is not None and self.worker is not None and self._frames_since_tune >= self.every:
+            if alignment is not None and self.worker is not None and self._frames_since_tune >= (
+                    self.every if item.gnss_trusted else self.every_denied):
                 snapshot = self.slam.map_points()
                 if len(snapshot.points_slam) >= self.min_points and self.worker.submit(
                     snapshot.points_slam, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s
@@ -382,6 +389,14 @@ class Localizer:
                     self._frames_since_tune = 0
         fix = self.globalizer.fix(pose)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
+
+    def _sigma_here_m(self, a: Alignment, c_slam: np.ndarray) -> float:
+        """Rough 1-σ of a fix at SLAM position c under alignment a: its own σ plus SLAM drift over
+        the distance from its centre (the Globalizer's propagation without the rotation terms)."""
+        if a.center_slam is None:
+            return a.sigma_m
+        d_m = a.T_ecef_slam.scale * float(np.linalg.norm(np.asarray(c_slam) - a.center_slam))
+        return float(np.hypot(a.sigma_m, (self.globalizer.slam_drift_fraction + a.scale_sigma) * d_m))
 
     def gnss_inconsistency(self) -> str | None:
         """Why GNSS is not to be trusted according to visual odometry, or None."""

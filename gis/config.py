@@ -20,6 +20,7 @@ class AlignmentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     finetune_every_frames: int = Field(200, ge=1, le=100_000, description="online ICP fine-tuning period (TerraSLAM §4.4)")
+    finetune_every_frames_denied: int = Field(50, ge=1, le=100_000, description="fine-tuning period while GNSS is not trusted (we are the position source: keep the drifting map registered)")
     crop_size_m: float = Field(150.0, gt=10, le=5000, description="side of the GIS crop used for registration (digital-twin §III-E)")
     min_fitness: float = Field(0.2, ge=0, le=1, description="registration rejected below this inlier fraction (real monocular SLAM at the right place: 0.25-0.35; wrong basins 6-10 m off: 0.02-0.27, so the prior/basin gates of gis.align.fine do the rest)")
     max_rmse_m: float = Field(1.0, gt=0, description="registration rejected above this inlier RMSE")
