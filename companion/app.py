@@ -166,6 +166,7 @@ class DemoOptions:
     gnss_loss_at_s: float = 40.0
     autopilot: str = "ardupilot"
     gnss_timeline: str | None = None  # e.g. "spoof_drift@40" (companion.sim.gnss.parse_timeline) instead of the loss
+    receiver: str = "dgps"  # simulated receiver grade before the loss: dgps (SBAS/DGPS, ~0.8 m), standalone (~4 m), urban
     scenario: str = "gnss_loss"
 
 
@@ -274,7 +275,8 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
 
     out_dir.mkdir(parents=True, exist_ok=True)
     scenario = make_scenario(opts.scenario, opts.seed, opts.n_frames, fps=opts.fps,
-                             gnss=GnssSpec(events=parse_timeline(opts.gnss_timeline) if opts.gnss_timeline
+                             gnss=GnssSpec(base=opts.receiver,
+                                           events=parse_timeline(opts.gnss_timeline) if opts.gnss_timeline
                                            else (GnssEvent("dropout", opts.gnss_loss_at_s),)))
     gis_world, _ = scenario.gis
     files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
@@ -282,7 +284,7 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     flight = fly_sim(cfg, scenario.steps(), scenario.n_frames, scenario.camera, scenario.T_body_cam, model,
                      autopilot=opts.autopilot, progress=progress)
     run, received = flight.run, flight.received
-    summary = summarize(run, name=f"demo ({opts.scenario}, {opts.autopilot})")
+    summary = summarize(run, name=f"demo ({opts.scenario}, {opts.receiver} receiver, {opts.autopilot})")
     summary["autopilot"] = {
         "personality": opts.autopilot,
         "received": dict(received.counts),

@@ -44,6 +44,8 @@ def _print_summary(summary: dict, out: Path) -> None:
     for label, key in (("all fixes", "all_fixes"), ("after takeover", "after_takeover")):
         ge = summary[key]["global_error_m"]
         t.add_row(f"3D error, {label} (mean / P99)", f"{fmt(ge['mean'])} / {fmt(ge['p99'])} m  (n={summary[key]['n']})")
+        he = summary[key]["horizontal_error_m"]
+        t.add_row(f"horizontal error, {label} (mean / P99)", f"{fmt(he['mean'])} / {fmt(he['p99'])} m")
         t.add_row(f"integrity violations, {label}", fmt(summary[key]["integrity_violation_ratio"]))
     ap = summary.get("autopilot_horizontal_error_m_after_takeover")
     if ap and ap["mean"] is not None:
@@ -51,7 +53,10 @@ def _print_summary(summary: dict, out: Path) -> None:
     lat = summary["frame_latency_ms"]
     t.add_row("per-frame pipeline latency (mean / P99)", f"{fmt(lat['mean'])} / {fmt(lat['p99'])} ms")
     ft = summary["finetune_ms"]
-    t.add_row("GIS fine-tune (mean / P99)", f"{fmt(ft['mean'])} / {fmt(ft['p99'])} ms")
+    t.add_row("GIS fine-tune wall time (mean / P99)", f"{fmt(ft['mean'])} / {fmt(ft['p99'])} ms")
+    events = [text for _, text in summary.get("alignment_events", ())]
+    accepted = sum("alignment fine accepted" in e for e in events)
+    t.add_row("GIS fine alignments accepted / tried", f"{accepted} / {accepted + sum('fine-tuning rejected' in e for e in events)}")
     console.print(t)
     if summary.get("switch_events"):
         console.print("[bold]Switch timeline[/bold]")
@@ -77,6 +82,7 @@ def demo(
     loss_at: float = typer.Option(40.0, "--gnss-loss-at", help="flight time (s) at which GNSS is lost"),
     gnss: Optional[str] = typer.Option(None, "--gnss", help="GNSS event timeline instead of the loss, MODE@START[-END],...: "
                                        "dropout, jamming, spoof_drift (0.5 m/s walk-off), spoof_jump (40 m), dgps, standalone; e.g. 'spoof_drift@40'"),
+    receiver: str = typer.Option("dgps", "--receiver", help="simulated GNSS receiver grade before the loss: dgps (SBAS/DGPS, ~0.8 m 1-σ) | standalone (~4 m) | urban"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""
@@ -84,6 +90,8 @@ def demo(
 
     if autopilot not in ("ardupilot", "px4"):
         fail(f"--autopilot must be ardupilot or px4, got {autopilot!r}")
+    if receiver not in ("dgps", "standalone", "urban"):
+        fail(f"--receiver must be dgps, standalone or urban, got {receiver!r}")
     cfg = _load(config)
     if gnss is not None:
         from companion.sim.gnss import parse_timeline
@@ -92,7 +100,8 @@ def demo(
             parse_timeline(gnss)
         except ValueError as e:
             fail(str(e))
-    opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot, gnss_timeline=gnss)
+    opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot, gnss_timeline=gnss,
+                       receiver=receiver)
     with _progress_bar("demo") as bar:
         task = bar.add_task("simulated flight", total=frames, state="")
 
