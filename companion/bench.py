@@ -142,6 +142,7 @@ class BenchRun:
     start_s: float = 0.0                   # flight time of the first frame
     gnss_baselines: dict[str, np.ndarray] = field(default_factory=dict)  # mode → 3D errors (m)
     gnss_baselines_h: dict[str, np.ndarray] = field(default_factory=dict)
+    receiver: str | None = None            # GNSS receiver grade before the loss (GnssSpec.base); None: a dataset's own
 
 
 def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.ndarray, model: GisModel,
@@ -183,8 +184,10 @@ def _window(scenario, start: int):
 
 
 def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int = 0, fps: float = 10.0,
-                   work_dir: Path, progress: Callable[[int, int, str], None] | None = None) -> BenchRun:
-    """n_frames of a simulator scenario in the window of ``bench_window_s``, GNSS dropped in it."""
+                   work_dir: Path, progress: Callable[[int, int, str], None] | None = None,
+                   receiver: str | None = None) -> BenchRun:
+    """n_frames of a simulator scenario in the window of ``bench_window_s``, GNSS dropped in it.
+    receiver: the GNSS receiver grade before the loss (GnssSpec.base), default the scenario's."""
     from companion.sim import make_scenario
     from companion.sim.gis_export import export_gis
     from companion.sim.gnss import GnssEvent
@@ -196,7 +199,8 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
         raise ValueError(f"--frames {n_frames}: scenario {name!r} has only {whole.n_frames} frames at {fps:g} fps")
     t_start, t_loss = bench_window_s(whole, n_frames)
     spec = whole.spec
-    spec = replace(spec, gnss=replace(spec.gnss, events=spec.gnss.events + (GnssEvent("dropout", t_loss),)))
+    spec = replace(spec, gnss=replace(spec.gnss, base=receiver or spec.gnss.base,
+                                      events=spec.gnss.events + (GnssEvent("dropout", t_loss),)))
     scenario = make_scenario(name, seed, spec=spec)
     start = int(round(t_start * fps))
     gis_world, _ = scenario.gis
@@ -208,6 +212,7 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     wall = time.perf_counter() - t0
     res = sampler.stop()
     br = BenchRun(name, run, scenario.origin, model, alignments, pts, key, res, wall, n_frames / fps, t_loss, t_start)
+    br.receiver = spec.gnss.base
     for mode in ("standalone", "dgps"):
         br.gnss_baselines[mode], br.gnss_baselines_h[mode] = gnss_baseline_errors(scenario, mode, t_start, t_start + n_frames / fps)
     return br
@@ -343,6 +348,7 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
     lat = s["frame_latency_ms"]
     return {
         "scenario": br.name,
+        "receiver": br.receiver,
         "frames": s["frames"],
         "duration_s": br.duration_s,
         "wall_s": br.wall_s,
@@ -462,7 +468,7 @@ def markdown_summary(fig: dict) -> str:
         ("DGPS (sim.) 3D error mean / P99 [m]", f"{_fmt(g['dgps']['mean'])} / {_fmt(g['dgps']['p99'])}" if g.get("dgps") else "n/a",
          f"{PUBLISHED['dgps_error_m']['mean']} / {PUBLISHED['dgps_error_m']['p99']}"),
     ]
-    lines = [f"# Benchmark: {fig['scenario']}", "",
+    lines = [f"# Benchmark: {fig['scenario']}" + (f" ({fig['receiver']} receiver before the GNSS loss)" if fig.get("receiver") else ""), "",
              f"{fig['frames']} frames ({_fmt(fig['duration_s'], 1)} s of flight from t = {_fmt(fig.get('start_s'), 1)} s, GNSS lost at {_fmt(fig.get('gnss_loss_at_s'), 1)} s; {_fmt(fig.get('wall_s'), 1)} s wall) on "
              f"{m['cpu']}, {m['cores']} cores, features on {m['torch_device']}.", "",
              "| figure | ours | TerraSLAM (paper) |", "|---|---|---|"]
@@ -488,7 +494,9 @@ def _pair(pub: dict | None) -> str:
 def suite_table(figs: list[dict]) -> str:
     """One comparison table of all scenarios with TerraSLAM's published numbers beside ours."""
     m = figs[0]["machine"] if figs else {"cpu": "?", "cores": "?", "torch_device": "?"}
-    lines = [f"Measured on {m['cpu']}, {m['cores']} cores, features on {m['torch_device']}.", "",
+    receivers = sorted({f.get("receiver") or "dataset" for f in figs})
+    lines = [f"Measured on {m['cpu']}, {m['cores']} cores, features on {m['torch_device']}; "
+             f"GNSS receiver before the loss: {', '.join(receivers)}.", "",
              "| scenario | frames | 3D error mean / P99 [m] | TerraSLAM [m] | latency mean / P99 [ms] | TerraSLAM [ms] | "
              "tracking | fix ratio | ATE % | align rough / fine [m] | integrity viol. | GPS / DGPS mean [m] |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -548,7 +556,7 @@ Progress = Callable[[str, int, int, str], None]  # (run label, frame, total, bri
 
 def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dataset: Path | None = None,
               n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False, sweep_extents_m: tuple[float, ...] = (),
-              progress: Progress | None = None) -> tuple[dict, BenchRun]:
+              progress: Progress | None = None, receiver: str | None = None) -> tuple[dict, BenchRun]:
     """One scenario (or dataset): run, figures, optional ablation and map-size sweep, outputs."""
     if (scenario is None) == (dataset is None):
         raise ValueError("give exactly one of scenario or dataset")
@@ -557,7 +565,7 @@ def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dat
         cb = (lambda k, n, st: progress(label, k, n, st)) if progress else None
         if dataset is not None:
             return bench_dataset(c, dataset, n_frames, cb)
-        return bench_scenario(c, scenario, n_frames, seed=seed, fps=fps, work_dir=out_dir, progress=cb)
+        return bench_scenario(c, scenario, n_frames, seed=seed, fps=fps, work_dir=out_dir, progress=cb, receiver=receiver)
 
     br = go(cfg, scenario or str(dataset))
     fig = figures(br, cfg)
@@ -579,12 +587,12 @@ def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dat
 
 
 def bench_suite(cfg: AppConfig, out_dir: Path, *, n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False,
-                scenarios: tuple[str, ...] = SUITE, progress: Progress | None = None) -> list[dict]:
+                scenarios: tuple[str, ...] = SUITE, progress: Progress | None = None, receiver: str | None = None) -> list[dict]:
     """Every scenario into out_dir/NAME/, then suite.md (comparison table), suite.json, suite_boxes.png."""
     figs, runs = [], []
     for name in scenarios:
         fig, br = bench_one(cfg, out_dir / name, scenario=name, n_frames=n_frames, seed=seed, fps=fps,
-                            ablation=ablation and name == "nominal", progress=progress)
+                            ablation=ablation and name == "nominal", progress=progress, receiver=receiver)
         figs.append(fig)
         runs.append(br)
     (out_dir / "suite.json").write_text(json.dumps(figs, indent=2, default=_json_default))

@@ -20,6 +20,7 @@ def bench(
     ablation: bool = typer.Option(False, "--ablation", help="also run baseline / +GA / +PLM / +RLC (TerraSLAM Fig. 14)"),
     sweep: Optional[str] = typer.Option(None, "--sweep", help="map-size sweep of fine-tuning cost: box-city extents in m, e.g. 1000,10000"),
     seed: int = typer.Option(0, "--seed"),
+    receiver: Optional[str] = typer.Option(None, "--receiver", help="simulated GNSS receiver grade before the loss: standalone (~4 m 1-σ) | dgps (SBAS/DGPS, ~0.8 m) | urban; default: the scenario's (standalone)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Run the real pipeline over a scenario / dataset / the suite and write bench.json, bench.md and plots."""
@@ -34,6 +35,8 @@ def bench(
         fail("give exactly one of --scenario NAME, --dataset DIR or --suite")
     if scenario is not None and scenario not in SCENARIOS:
         fail(f"--scenario: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}")
+    if receiver is not None and receiver not in ("standalone", "dgps", "urban"):
+        fail(f"--receiver must be standalone, dgps or urban, got {receiver!r}")
     if dataset is not None and not dataset.is_dir():
         fail(f"--dataset: {dataset} is not a folder")
     try:
@@ -58,10 +61,11 @@ def bench(
 
         try:
             if suite:
-                figs = bench_suite(cfg, out, n_frames=frames, seed=seed, fps=fps, ablation=ablation, progress=progress)
+                figs = bench_suite(cfg, out, n_frames=frames, seed=seed, fps=fps, ablation=ablation, progress=progress,
+                                   receiver=receiver)
             else:
                 fig, _ = bench_one(cfg, out, scenario=scenario, dataset=dataset, n_frames=frames, seed=seed, fps=fps,
-                                   ablation=ablation, sweep_extents_m=extents, progress=progress)
+                                   ablation=ablation, sweep_extents_m=extents, progress=progress, receiver=receiver)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
     typer.echo(suite_table(figs) if suite else markdown_summary(fig))  # plain: Markdown tables must not wrap
