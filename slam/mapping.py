@@ -59,6 +59,7 @@ class LocalMapper:
         self._correction_gen = 0
         self._loop_cooldown_until = 0
         self._pending_ba = None
+        self._n_local_ba = 0
         self._thread = threading.Thread(target=self._run, name="slam-mapping", daemon=True)
         self._thread.start()
 
@@ -172,7 +173,11 @@ class LocalMapper:
                if c.progressive_local_mapping and len(prev) >= 2 else w)
         if self._pending_ba is not None:
             return  # one local BA in flight at a time; this keyframe's points are mapped already
-        job = self._build_ba(ids[-win:], max_fixed=max(2, w // 2))
+        n_fixed = c.ba_fixed_keyframes or max(2, w // 2)
+        self._n_local_ba += 1
+        if c.periodic_ba_every_keyframes and self._n_local_ba % c.periodic_ba_every_keyframes == 0:
+            win = max(win, c.periodic_ba_window)  # occasional larger window, still in the worker process
+        job = self._build_ba(ids[-win:], max_fixed=n_fixed)
         if job is not None:
             self.stats.ba_window.append(win)
             self._pending_ba = (self._ba.submit(job[0]), job, kf)

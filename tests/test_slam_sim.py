@@ -116,3 +116,13 @@ def test_long_loss_resets_the_map_and_reinitializes(nominal):
     assert r.reset_counter == 1  # a new SLAM frame: downstream must drop its alignment
     assert r.states[60] == TrackingState.LOST and r.states[80] == TrackingState.INITIALIZING
     assert any(s == TrackingState.OK for s in r.states[85:])
+
+
+def test_periodic_larger_ba_runs_in_the_background(cpu_run):
+    """Every periodic_ba_every_keyframes-th local BA covers periodic_ba_window keyframes (scale
+    anchoring through turns); it runs in the worker, so tracking targets above still hold."""
+    c = SlamConfig()
+    r = cpu_run
+    assert len(r.ba_window) >= c.periodic_ba_every_keyframes
+    assert max(r.ba_window) == c.periodic_ba_window
+    assert min(r.ba_window) <= c.local_window
