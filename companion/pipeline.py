@@ -143,6 +143,65 @@ class GnssConsistency:
 
 
 @dataclass
+class SlamSpeedCheck:
+    """Is the SLAM map's scale still the one the alignment assumed? (integrity; beyond the papers)
+
+    Monocular SLAM can lose its scale in a turn (the map shrinks 2–4× within seconds). Positions
+    then drift at metres per second while the alignment's covariance still claims a metre — the
+    worst failure a position source can have. While GNSS is available, its Doppler ground speed
+    is an independent yardstick: the horizontal speed of the globalised SLAM track over
+    ``window_s`` must match it within ``max_ratio_error`` whenever the vehicle moves faster than
+    ``min_speed_mps``. A spoofer walking the position off at ≤ 1–2 m/s barely changes the ratio;
+    a scale collapse changes it by tens of percent. Any mismatch withholds fixes at once
+    (``suspect``); ``persist_s`` of it → ``broken`` (the alignment is dropped).
+    """
+
+    window_s: float = 1.0
+    min_speed_mps: float = 3.0
+    max_ratio_error: float = 0.3
+    persist_s: float = 0.5
+    broken: bool = False
+    last_ratio: float = 1.0
+    _hist: list[tuple[float, np.ndarray, float]] = field(default_factory=list)  # (t, ECEF position under the alignment, GNSS speed)
+    _since: float | None = None
+
+    def update(self, t_s: float, p_ecef_m: np.ndarray, R_ecef_enu_: np.ndarray, gnss_speed_mps: float | None) -> bool:
+        """Feed the globalised SLAM position and GNSS ground speed; returns ``broken``."""
+        if gnss_speed_mps is None or not math.isfinite(gnss_speed_mps):
+            self._hist.clear()  # compare only over spans with GNSS speed throughout
+            return self.broken
+        self._hist.append((t_s, np.asarray(p_ecef_m, float), float(gnss_speed_mps)))
+        while len(self._hist) > 2 and self._hist[1][0] <= t_s - self.window_s:
+            self._hist.pop(0)
+        t0, p0, _ = self._hist[0]
+        if t_s - t0 < 0.5 * self.window_s:
+            return self.broken
+        v_enu = R_ecef_enu_.T @ (self._hist[-1][1] - p0) / (t_s - t0)
+        v_vis = float(np.hypot(v_enu[0], v_enu[1]))
+        v_gnss = float(np.mean([v for _, _, v in self._hist[1:]]))  # the same span's mean ground speed
+        if max(v_vis, v_gnss) < self.min_speed_mps:
+            self._since = None
+            return self.broken
+        self.last_ratio = v_vis / max(v_gnss, 1e-3)
+        if abs(self.last_ratio - 1.0) > self.max_ratio_error:
+            self._since = t_s if self._since is None else self._since
+            if t_s - self._since >= self.persist_s:
+                self.broken = True
+        else:
+            self._since = None
+        return self.broken
+
+    @property
+    def suspect(self) -> bool:
+        """Mismatch seen (not yet persistent) or broken: fixes are withheld meanwhile."""
+        return self.broken or self._since is not None
+
+    def reset(self) -> None:
+        self._hist.clear()
+        self._since, self.broken, self.last_ratio = None, False, 1.0
+
+
+@dataclass
 class BootstrapCollector:
     """Pairs (SLAM camera centre, GNSS ECEF position) while GNSS is trusted (digital-twin §III-D).
 
@@ -172,6 +231,10 @@ class BootstrapCollector:
 
     def _lists(self) -> tuple[list, ...]:
         return self.p_slam, self.p_ecef, self.R_ecef_slam, self.t_s, self.h_acc_m, self.v_acc_m
+
+    def clear(self) -> None:
+        for lst in self._lists():
+            lst.clear()
 
     def add(self, pose: SlamPose, sample: GnssSample | None, trusted: bool, prior: AttitudePrior | None = None) -> None:
         """make_pair + append for a trusted sample (the Localizer gates pairs in between)."""
@@ -311,6 +374,7 @@ class Localizer:
         self.min_points = min_points_for_finetune
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
+        self.speed_check = SlamSpeedCheck()
         self.alignment: Alignment | None = None
         self.events: list[tuple[float, str]] = []  # (t_s, text): alignment timeline
         self._lock = threading.Lock()
@@ -357,6 +421,21 @@ class Localizer:
             with self._lock:
                 self.alignment = alignment = None
                 self.gnss_check.reset()
+        if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
+            p = alignment.T_ecef_slam.apply(pose.T_slam_cam[:3, 3][None])[0]
+            v = item.gnss.vel_ned_mps
+            speed = float(np.hypot(v[0], v[1])) if v is not None else None
+            lat, lon, _ = ecef_to_geodetic(p)
+            if self.speed_check.update(pose.t_s, p, R_ecef_enu(float(lat), float(lon)), speed):
+                # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
+                self.events.append((pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
+                                              f"{self.speed_check.last_ratio:.2f}): alignment dropped, fixes withheld"))
+                with self._lock:
+                    self.alignment = alignment = None
+                    self.globalizer.clear_alignment()
+                    self.gnss_check.reset()
+                self.bootstrap.clear()
+                self.speed_check.reset()
         if pose.state.has_pose:
             pair = self.bootstrap.make_pair(pose, item.gnss, item.prior)
             if pair is not None:
@@ -387,7 +466,7 @@ class Localizer:
                     snapshot.points_slam, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s
                 ):
                     self._frames_since_tune = 0
-        fix = self.globalizer.fix(pose)
+        fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 
     def _sigma_here_m(self, a: Alignment, c_slam: np.ndarray) -> float:

@@ -42,6 +42,13 @@ class Globalizer:
     def alignment(self) -> Alignment | None:
         return self._alignment
 
+    def clear_alignment(self) -> None:
+        """Forget the alignment: no fix until a new one is adopted (the map it described is suspect)."""
+        with self._lock:
+            self._alignment = None
+            self._cov_center = None
+            self._prev = None
+
     def update_alignment(self, a: Alignment) -> None:
         """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe)."""
         T = a.T_ecef_slam

@@ -72,3 +72,34 @@ def test_monitor_turns_the_vision_verdict_into_untrusted():
     assert st.quality is GnssQuality.UNTRUSTED and any("visual odometry" in r for r in st.reasons)
     m.on_vision_check(None)
     assert m.status(10.1).quality is GnssQuality.GOOD
+
+
+def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: float = 8.0, t_change_s: float = 5.0):
+    """A vehicle flying east at speed_mps; our globalised track shrinks to scale_after × after
+    t_change_s (a monocular scale collapse), GNSS ground speed is the truth + drift_mps (a walk-off)."""
+    from companion.pipeline import SlamSpeedCheck
+    from gis.geodesy import LocalFrame
+
+    origin = LocalFrame(47.0, 8.0, 500.0)
+    check = SlamSpeedCheck()
+    suspect_t = broken_t = None
+    x = 0.0
+    for k in range(150):
+        t = k * 0.1
+        x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0)
+        p = origin.enu_to_ecef(np.array([[x, 0.0, 60.0]]))[0]
+        broken = check.update(t, p, origin.R_ecef_enu, speed_mps + drift_mps)
+        if check.suspect and suspect_t is None:
+            suspect_t = t
+        if broken and broken_t is None:
+            broken_t = t
+    return suspect_t, broken_t
+
+
+def test_slam_scale_collapse_is_caught_by_gnss_ground_speed():
+    suspect_t, broken_t = _speed_check_run(scale_after=0.5)
+    assert suspect_t is not None and 5.0 < suspect_t <= 6.0  # fixes withheld within a second
+    assert broken_t is not None and broken_t - suspect_t <= 0.6
+    assert _speed_check_run(scale_after=1.0) == (None, None)
+    assert _speed_check_run(scale_after=1.0, drift_mps=1.0) == (None, None)  # a walk-off spoofer is not our scale
+    assert _speed_check_run(scale_after=0.5, speed_mps=1.0) == (None, None)  # hovering: no yardstick
