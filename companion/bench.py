@@ -325,6 +325,7 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
     fixes = s["all_fixes"]
     if fixes["n"] == 0:
         reasons["global_error_m"] = "no fix with truth was emitted" if br.run.truth_ecef_m else "the dataset has no truth"
+        reasons["integrity_violation_ratio"] = reasons["global_error_m"]
     ate, why = ate_sim3_percent(br.run, br.origin, br.map_key)
     if why:
         reasons["ate_sim3_percent"] = why
