@@ -145,14 +145,6 @@ class BenchRun:
     receiver: str | None = None            # GNSS receiver grade before the loss (GnssSpec.base); None: a dataset's own
 
 
-def run_pipeline(cfg: AppConfig, steps, n_frames: int, camera, T_body_cam: np.ndarray, model: GisModel,
-                 progress: Callable[[int, int, str], None] | None = None) -> tuple[RunLog, list[Alignment], np.ndarray, tuple[int, int] | None]:
-    """The demo's loop (``companion.app.fly_sim``: Localizer + Bridge + simulated autopilot on UDP
-    127.0.0.1) over ``steps``; returns the RunLog, the adopted alignments, the final map and its key."""
-    f = fly_sim(cfg, steps, n_frames, camera, T_body_cam, model, progress=progress)
-    return f.run, f.alignments, f.map_points_slam, f.last_map_key
-
-
 def first_turn_s(scenario, min_turn_deg: float = 60.0) -> float:
     """Flight time at which the heading has first turned by ``min_turn_deg`` (0 when it never does)."""
     v = scenario.truth.v_enu[:, :2]
@@ -208,11 +200,11 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
-    run, alignments, pts, key = run_pipeline(cfg, _window(scenario, start), n_frames, scenario.camera, scenario.T_body_cam, model, progress)
+    f = fly_sim(cfg, _window(scenario, start), n_frames, scenario.camera, scenario.T_body_cam, model, progress=progress)
     wall = time.perf_counter() - t0
     res = sampler.stop()
-    br = BenchRun(name, run, scenario.origin, model, alignments, pts, key, res, wall, n_frames / fps, t_loss, t_start)
-    br.receiver = spec.gnss.base
+    br = BenchRun(name, f.run, scenario.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,
+                  n_frames / fps, t_loss, t_start, receiver=spec.gnss.base)
     for mode in ("standalone", "dgps"):
         br.gnss_baselines[mode], br.gnss_baselines_h[mode] = gnss_baseline_errors(scenario, mode, t_start, t_start + n_frames / fps)
     return br
@@ -231,10 +223,11 @@ def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
-    run, alignments, pts, key = run_pipeline(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress)
+    f = fly_sim(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress=progress)
     wall = time.perf_counter() - t0
     res = sampler.stop()
-    return BenchRun(ds.name, run, ds.origin, model, alignments, pts, key, res, wall, float(ds.frame_t_s[n - 1] - ds.frame_t_s[0]))
+    return BenchRun(ds.name, f.run, ds.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,
+                    float(ds.frame_t_s[n - 1] - ds.frame_t_s[0]))
 
 
 def gnss_baseline_errors(scenario, base: str, t_from_s: float = 0.0, t_to_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:

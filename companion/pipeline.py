@@ -380,7 +380,7 @@ class Localizer:
         self._lock = threading.Lock()
         self._frames_since_tune = 0
         self._frames_since_boot = 0
-        self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is the only alignment
+        self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
         self.worker = FineTuneWorker(tuner, self._on_finetune) if tuner is not None else None
         if initial_alignment is not None:
@@ -390,13 +390,19 @@ class Localizer:
         with self._lock:
             old, pose = self.alignment, self._last_pose
             if old is not None and pose is not None and (old.map_id, old.reset_counter) == (alignment.map_id, alignment.reset_counter):
-                c = pose.T_slam_cam[:3, 3]
-                d_ecef = old.T_ecef_slam.apply(c[None])[0] - alignment.T_ecef_slam.apply(c[None])[0]
-                lat, lon, _ = ecef_to_geodetic(alignment.T_ecef_slam.apply(c[None])[0])
-                self.gnss_check.shift((R_ecef_enu(float(lat), float(lon)).T @ d_ecef)[:2])
+                c = pose.T_slam_cam[:3, 3][None]
+                p_new = alignment.T_ecef_slam.apply(c)[0]
+                lat, lon, _ = ecef_to_geodetic(p_new)
+                self.gnss_check.shift((R_ecef_enu(float(lat), float(lon)).T @ (old.T_ecef_slam.apply(c)[0] - p_new))[:2])
             self.alignment = alignment
             self.globalizer.update_alignment(alignment)
         self.events.append((alignment.t_s, f"alignment {alignment.source.value} accepted ({why}; σ={alignment.sigma_m:.2f} m)"))
+
+    def _drop_alignment(self, t_s: float, why: str) -> None:
+        self.events.append((t_s, why))
+        with self._lock:
+            self.alignment = None
+            self.gnss_check.reset()
 
     def _on_finetune(self, alignment: Alignment | None, reason: str, wall_ms: float) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
@@ -417,23 +423,19 @@ class Localizer:
         if alignment is not None and (alignment.map_id, alignment.reset_counter) != (pose.map_id, pose.reset_counter):
             # SLAM map reset or loop-corrected: the alignment no longer applies (the Globalizer
             # refuses fixes for another map by itself).
-            self.events.append((pose.t_s, "SLAM map changed: alignment dropped"))
-            with self._lock:
-                self.alignment = alignment = None
-                self.gnss_check.reset()
+            self._drop_alignment(pose.t_s, "SLAM map changed: alignment dropped")
+            alignment = None
         if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
             p = alignment.T_ecef_slam.apply(pose.T_slam_cam[:3, 3][None])[0]
             v = item.gnss.vel_ned_mps
             speed = float(np.hypot(v[0], v[1])) if v is not None else None
-            lat, lon, _ = ecef_to_geodetic(p)
-            if self.speed_check.update(pose.t_s, p, R_ecef_enu(float(lat), float(lon)), speed):
+            # the receiver's own position gives the local level frame (metres away: same axes)
+            if self.speed_check.update(pose.t_s, p, R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
                 # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
-                self.events.append((pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
-                                              f"{self.speed_check.last_ratio:.2f}): alignment dropped, fixes withheld"))
-                with self._lock:
-                    self.alignment = alignment = None
-                    self.globalizer.clear_alignment()
-                    self.gnss_check.reset()
+                self._drop_alignment(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
+                                               f"{self.speed_check.last_ratio:.2f}): alignment dropped, fixes withheld")
+                alignment = None
+                self.globalizer.clear_alignment()
                 self.bootstrap.clear()
                 self.speed_check.reset()
         if pose.state.has_pose:
