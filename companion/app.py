@@ -221,7 +221,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
                 ap.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
             att = _wait_attitude(bridge, step.frame.t_s)
             status = bridge.gnss_status()
-            sent_before = bridge.stats().sent[out_msg]
+            sent_before = bridge.sent_count(out_msg)
             t_capture = time.perf_counter()  # the frame exists (rendered / decoded) from here on
             rec = localizer.process(PipelineInput(step.frame, status.sample, status.quality is GnssQuality.GOOD, attitude_prior(att)))
             t_tracked = time.perf_counter()
@@ -230,7 +230,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             t_wire = time.perf_counter()
             run.records.append(rec)
             run.wall_track_ms.append((t_tracked - t_capture) * 1e3)
-            if bridge.stats().sent[out_msg] > sent_before:  # this fix's bytes were written to the socket
+            if bridge.sent_count(out_msg) > sent_before:  # this fix's bytes were written to the socket
                 run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
             if truth is not None:
                 run.truth_ecef_m[rec.seq] = truth.p_ecef_m

@@ -129,6 +129,10 @@ class Bridge:
         with self._lock:
             return list(self.policy.events)
 
+    def sent_count(self, msg_type: str) -> int:
+        """Messages of ``msg_type`` written to the link so far (cheap: no copy of the latency window)."""
+        return self._stats.sent[msg_type]
+
     def stats(self) -> BridgeStats:
         s = self._stats
         s.fix_to_wire_s = list(self._latency)
