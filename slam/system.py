@@ -2,11 +2,20 @@
 
 ``track`` runs in the caller's (tracking) thread and never waits on local mapping or loop
 closing, which run in a background thread (BA in a worker process, see slam/ba.py).
+
+Map identity: ``map_id`` (random, 62 bits) names one map for its whole life, across save/load;
+``reset_counter`` counts resets within this lineage. Both go into every SlamPose / MapUpdate, and
+downstream alignments are keyed on the pair. ``save_map`` writes the current map (slam/persist.py)
+from any thread; ``SlamSystem(camera, config, initial_map=load_map_file(...))`` starts in a saved
+map with the same identity, relocalising into it (Tracker.resume) or, after ``reloc_timeout_s``
+without success, resetting to a fresh map (new map_id, reset_counter + 1).
 """
 from __future__ import annotations
 
 import queue
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -14,12 +23,14 @@ from slam.config import SlamConfig
 from slam.features import make_extractor
 from slam.geometry import inv_T
 from slam.mapping import LocalMapper
+from slam.persist import LoadedMap, MapFileError, SavedMap, new_map_id, save_map_file, snapshot_map
 from slam.tracking import Tracker
 from slam.types import AttitudePrior, CameraModel, Frame, MapUpdate, SlamPose, TrackingState
 
 
 class SlamSystem:
-    def __init__(self, camera: CameraModel, config: SlamConfig | None = None) -> None:
+    def __init__(self, camera: CameraModel, config: SlamConfig | None = None, initial_map: LoadedMap | None = None,
+                 reloc_timeout_s: float = 15.0) -> None:
         self.camera = camera
         self.config = config or SlamConfig()
         if self.config.use_attitude_prior:
@@ -27,9 +38,20 @@ class SlamSystem:
         K = np.asarray(camera.K, float)
         if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"camera.K must be a 3x3 intrinsics matrix with positive focal lengths, got {K!r}")
-        self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, make_extractor(camera, self.config))
-        self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map)
-        self.reset_counter = 0
+        extract = make_extractor(camera, self.config)
+        if initial_map is None:
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract)
+            self.map_id, self.reset_counter = new_map_id(), 0
+        else:
+            if not initial_map.slam_map.keyframes:
+                raise MapFileError(initial_map.path, "the map has no keyframes")
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, map=initial_map.slam_map)
+            self.tracker.resume(reloc_timeout_s)
+            self.map_id, self.reset_counter = initial_map.header.map_id, initial_map.header.reset_counter
+        self._map_ids = {self.reset_counter: self.map_id}  # reset_counter -> map_id, for MapUpdates
+        self._current = (self.tracker.map, self.map_id, self.reset_counter)  # swapped as one (save_map reads it)
+        self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map, reset_counter=self.reset_counter)
+        self.restored = initial_map is not None
         self._last_seq: int | None = None
 
     def track(self, frame: Frame, prior: AttitudePrior | None = None) -> SlamPose:
@@ -47,25 +69,50 @@ class SlamSystem:
         res = self.tracker.track(frame)
         if res.reset_map is not None:
             self.reset_counter += 1
+            self.map_id = new_map_id()
+            self._map_ids[self.reset_counter] = self.map_id
+            self._current = (res.reset_map, self.map_id, self.reset_counter)
             self.mapper.reset(res.reset_map)
         if res.new_keyframe is not None:
             self.mapper.insert_keyframe(res.new_keyframe)
         T_slam_cam = inv_T(res.T_cam_slam) if res.state.has_pose else np.full((4, 4), np.nan)
         return SlamPose(t_s=frame.t_s, seq=frame.seq, T_slam_cam=T_slam_cam, state=res.state,
                         reset_counter=self.reset_counter, n_inliers=res.n_inliers,
-                        tracking_ms=(time.perf_counter() - t0) * 1e3, map_id=self.reset_counter)
+                        tracking_ms=(time.perf_counter() - t0) * 1e3, map_id=self.map_id)
+
+    def _with_map_id(self, u: MapUpdate) -> MapUpdate:
+        # local mapping knows its map by reset_counter only; the id goes with it
+        return replace(u, map_id=self._map_ids.get(u.reset_counter, -1))
 
     def poll_map_updates(self) -> list[MapUpdate]:
         out = []
         while True:
             try:
-                out.append(self.mapper.updates.get_nowait())
+                out.append(self._with_map_id(self.mapper.updates.get_nowait()))
             except queue.Empty:
                 return out
 
     def map_points(self) -> MapUpdate:
         """Snapshot of all current map points (and the latest keyframe window)."""
-        return self.mapper._snapshot(full=True)
+        return self._with_map_id(self.mapper._snapshot(full=True))
+
+    def current_map_key(self) -> tuple[int, int]:
+        """(map_id, reset_counter) of the map being tracked now (as in SlamPose)."""
+        _, map_id, reset_counter = self._current
+        return map_id, reset_counter
+
+    def save_map(self, path: Path | str, attachments: dict | None = None) -> SavedMap | None:
+        """Write the current map to ``path`` atomically (slam/persist.py); None while the map has
+        no keyframes yet (initialising). Safe from any thread: the map is copied under its lock
+        (which only local mapping / loop closing hold; tracking does not wait for it) and written
+        without it. ``attachments`` (JSON) travel in the same file, e.g. the map's alignment."""
+        slam_map, map_id, reset_counter = self._current
+        t0 = time.perf_counter()
+        snap = snapshot_map(slam_map)
+        snapshot_ms = (time.perf_counter() - t0) * 1e3
+        if snap.n_keyframes == 0:
+            return None
+        return save_map_file(path, snap, self.camera, map_id, reset_counter, attachments, snapshot_ms=snapshot_ms)
 
     def keyframe_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """(K,) keyframe times and (K,4,4) T_slam_cam of every keyframe of the current map."""

@@ -104,8 +104,26 @@ class Tracker:
     _correction_gen: int = 0
     _reloc_map: LocalMap | None = None
     _reloc_age: int = 0
+    _reloc_timeout_s: float | None = None  # set by resume(): relocalise within this much frame time or reset
+    _reloc_deadline_t_s: float | None = None
 
     # --- public ---------------------------------------------------------------------------------
+    def resume(self, timeout_s: float) -> None:
+        """Start in ``self.map`` (a map loaded from disk) as lost: the first frames relocalise against
+        its most recent keyframes (where the vehicle was when the map was saved). If none succeeds
+        within ``timeout_s`` of frame time from the first frame, the map is abandoned (a reset, as
+        after a long loss) instead of the ``reset_after_lost_frames`` rule."""
+        with self.map.lock:
+            ids = self.map.kf_ids()
+            if not ids:
+                raise ValueError("cannot resume in an empty map")
+            self.shared.local_map = self.map.local_map(ids[-self.config.local_map_keyframes:], 0)
+            self.T_last = self.map.keyframes[ids[-1]].T_cam_slam.copy()
+        self.state = TrackingState.LOST
+        self.lost_frames = 0
+        self._reloc_map = None
+        self._reloc_timeout_s, self._reloc_deadline_t_s = float(timeout_s), None
+
     def track(self, frame: Frame) -> TrackResult:
         feats = self.extract(frame.image)
         if self.state == TrackingState.INITIALIZING:
@@ -196,7 +214,13 @@ class Tracker:
         """Match against the points of the recent keyframes (brute force, no pose prior) + PnP."""
         self.lost_frames += 1
         c = self.config
-        if self.lost_frames > c.reset_after_lost_frames:
+        if self._reloc_timeout_s is not None:  # resumed in a loaded map: a time budget
+            if self._reloc_deadline_t_s is None:
+                self._reloc_deadline_t_s = frame.t_s + self._reloc_timeout_s
+            give_up = frame.t_s > self._reloc_deadline_t_s
+        else:
+            give_up = self.lost_frames > c.reset_after_lost_frames
+        if give_up:
             return self._reset(frame, feats)
         if self._reloc_map is None or self._reloc_age >= 15:
             with self.map.lock:
@@ -211,10 +235,14 @@ class Tracker:
                 sol = solve_pnp(self.K, lm.p_slam[pairs[:, 1]], feats.uv_px[pairs[:, 0]], None,
                                 c.pnp_reproj_px, c.reloc_min_inliers)
                 if sol is not None:
-                    # confirm with a projection-guided pass on the local map around the found pose
+                    # confirm with a projection-guided pass around the found pose: the local map,
+                    # else the relocalisation map (the pose may lie outside the newest keyframes')
                     est = self._track_local_map(feats, sol[0])
+                    if est is None or len(est.inlier_pid) < c.reloc_min_inliers:
+                        est = self._match_and_solve(feats, lm, sol[0], c.search_radius_px, cKDTree(feats.uv_px))
                     if est is not None and len(est.inlier_pid) >= c.reloc_min_inliers:
                         self._reloc_map = None
+                        self._reloc_timeout_s = self._reloc_deadline_t_s = None
                         self.T_vel = np.eye(4)
                         self.frames_since_kf = c.max_frames_between_keyframes  # key the first good frame
                         return self._accept(frame, feats, est, TrackingState.RELOCALIZED)
@@ -230,6 +258,7 @@ class Tracker:
         self.state = TrackingState.INITIALIZING
         self._init = None
         self._reloc_map = None
+        self._reloc_timeout_s = self._reloc_deadline_t_s = None
         self.lost_frames = 0
         res = self._initialize(frame, feats)
         return TrackResult(res.state, res.T_cam_slam, res.n_inliers, reset_map=self.map)
