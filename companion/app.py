@@ -49,11 +49,12 @@ class SimClock:
 
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
-                    initial_alignment: Alignment | None = None) -> Localizer:
-    """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy)."""
+                    initial_alignment: Alignment | None = None, initial_map=None) -> Localizer:
+    """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy).
+    ``initial_map``: a slam.persist.LoadedMap to resume in (the service after a restart)."""
     from slam.system import SlamSystem
 
-    slam = SlamSystem(camera, cfg.slam)
+    slam = SlamSystem(camera, cfg.slam, initial_map=initial_map, reloc_timeout_s=cfg.persistence.reloc_timeout_s)
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,

@@ -1,6 +1,6 @@
 """The validated application config: one model per section, YAML file + TERRASLAM_* overrides.
 
-Sections: camera, slam, gis, alignment, mavlink, switching, supervisor, logging. Each package owns
+Sections: camera, slam, gis, alignment, mavlink, switching, supervisor, persistence, logging. Each package owns
 its section's model (slam/config.py, gis/config.py, mavlink_bridge/config.py); this module owns
 camera/supervisor/logging and the root.
 
@@ -35,6 +35,7 @@ class CameraConfig(BaseModel):
     fourcc: str | None = Field(None, min_length=4, max_length=4, description="V4L2 pixel format, e.g. MJPG")
     T_body_cam: list[list[float]] | None = Field(None, description="4x4 camera-to-body (FRD) mount; default nadir-free forward-oblique from the sim")
     stall_timeout_s: float = Field(2.0, gt=0, description="no frame for this long → reopen the source")
+    sim_start_s: float = Field(0.0, ge=0, description="source 'sim' only: start the simulated flight at this flight time (s), e.g. to test a restart mid-flight")
 
 
 class SupervisorConfig(BaseModel):
@@ -42,7 +43,20 @@ class SupervisorConfig(BaseModel):
 
     watchdog: bool = Field(True, description="send WATCHDOG=1 to systemd only while the pipeline makes progress")
     stage_restart_limit: int = Field(5, ge=0, description="restarts of a failed stage before giving up")
-    state_dir: Path = Field(Path("~/.local/state/terraslam"), description="recordings and the last T_fine")
+    state_dir: Path = Field(Path("~/.local/state/terraslam"), description="recordings and the saved SLAM map + alignment (slam_map.npz)")
+
+
+class PersistenceConfig(BaseModel):
+    """SLAM map persistence across restarts (docs/SERVICE.md "Restart during a GNSS outage")."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="save the SLAM map and its alignment to supervisor.state_dir/slam_map.npz; resume from it after a restart")
+    save_every_s: float = Field(10.0, ge=1.0, le=3600.0, description="periodic map save in a background thread (also on each accepted alignment and at clean shutdown)")
+    reloc_timeout_s: float = Field(15.0, gt=0, le=600.0, description="after a restart, relocalise in the saved map within this long (frame time), else start a fresh map and drop the restored alignment")
+    restore_sigma_m: float = Field(0.5, ge=0, le=50.0, description="1-σ (m) added to a restored alignment for the restart (relocalisation, map refined after the alignment)")
+    restore_sigma_growth_mps: float = Field(0.01, ge=0, le=10.0, description="1-σ (m) added per second of the alignment's age at the restart (wall clock)")
+    max_restore_age_s: float = Field(1800.0, gt=0, description="an alignment older than this (wall clock) is not restored; the map still is")
 
 
 class LoggingConfig(BaseModel):
@@ -64,6 +78,7 @@ class AppConfig(BaseModel):
     mavlink: MavlinkConfig = MavlinkConfig()
     switching: SwitchingConfig = SwitchingConfig()
     supervisor: SupervisorConfig = SupervisorConfig()
+    persistence: PersistenceConfig = PersistenceConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @model_validator(mode="after")

@@ -21,7 +21,7 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
@@ -398,6 +398,21 @@ class Localizer:
             self.globalizer.update_alignment(alignment)
         self.events.append((alignment.t_s, f"alignment {alignment.source.value} accepted ({why}; σ={alignment.sigma_m:.2f} m)"))
 
+    def restore_alignment(self, saved: Alignment, age_s: float, sigma_restart_m: float, sigma_growth_mps: float) -> Alignment:
+        """Adopt an alignment saved with the SLAM map this process resumed in (after a restart).
+
+        Its covariance is inflated, never shrunk: an isotropic position term
+        σ_add = hypot(sigma_restart_m, sigma_growth_mps · age_s) is added to the translation block
+        (about its centre), so σ_restored = hypot(σ_saved, σ_add). sigma_restart_m covers the
+        relocalisation and the map having been refined after the alignment was computed; the growth
+        term grows with the wall time since the alignment was accepted (age_s). The alignment still
+        applies only to poses of its own map (map_id, reset_counter): if relocalisation fails and
+        SLAM starts a fresh map, ``process`` drops it like any other."""
+        add_m = math.hypot(sigma_restart_m, sigma_growth_mps * max(age_s, 0.0))
+        a = inflate_alignment(saved, add_m)
+        self._accept(a, f"restored after a restart, {age_s:.0f} s old, σ {saved.sigma_m:.2f} → {a.sigma_m:.2f} m")
+        return a
+
     def _drop_alignment(self, t_s: float, why: str) -> None:
         self.events.append((t_s, why))
         with self._lock:
@@ -490,6 +505,14 @@ class Localizer:
         if self.worker is not None:
             self.worker.close()
         self.slam.close()
+
+
+def inflate_alignment(a: Alignment, add_sigma_m: float) -> Alignment:
+    """``a`` with an isotropic 1-σ ``add_sigma_m`` (metres) added to its position uncertainty."""
+    w, V = np.linalg.eigh(a.information_6x6)
+    cov6 = (V / np.maximum(w, 1e-12 * max(w[-1], 1e-12))) @ V.T  # as the Globalizer inverts it
+    cov6[3:, 3:] += add_sigma_m**2 * np.eye(3)
+    return replace(a, information_6x6=np.linalg.inv(cov6), sigma_m=float(math.hypot(a.sigma_m, add_sigma_m)))
 
 
 def run(inputs: Iterable[PipelineInput], localizer: Localizer, sink: Callable[[GlobalFix | None], None] | None = None,

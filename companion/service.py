@@ -4,6 +4,12 @@ One required stage runs the hot path (read the newest frame, track, globalise, h
 bridge) and beats per frame, so systemd's watchdog is fed only while frames really flow. The
 bridge runs its own receive thread; the fine-tuner its worker. Each accepted T_fine is written to
 the GIS cache at once (a kill -9 runs no hooks) and again at clean shutdown.
+
+Persistence (companion/persistence.py): a background thread saves the SLAM map with its current
+alignment to ``<state_dir>/slam_map.npz`` every ``persistence.save_every_s``, soon after each
+accepted alignment and at clean shutdown. On start, a saved map is loaded and SLAM relocalises in
+it; its alignment (same map, same GIS site, not too old) is restored with an inflated covariance,
+so fixes resume as soon as tracking does, also when GNSS is gone.
 """
 from __future__ import annotations
 
@@ -13,6 +19,7 @@ from dataclasses import replace
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
+from companion.persistence import MapSaver, load_saved, map_path
 from companion.pipeline import PipelineInput, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
@@ -28,12 +35,26 @@ def _open_camera(cfg: AppConfig):
         from companion.sim import make_scenario
 
         scenario = make_scenario("nominal", fps=cfg.camera.fps)
-        return open_sim_source(scenario.steps(), scenario.camera, realtime=True), scenario.T_body_cam
+        start = min(int(round(cfg.camera.sim_start_s * scenario.fps)), scenario.n_frames - 1)
+        return open_sim_source(scenario.steps(start), scenario.camera, realtime=True), scenario.T_body_cam
     if cfg.camera.T_body_cam is None:
         raise ValueError("camera.T_body_cam (4x4 camera→body FRD mount) is required for a real camera")
     import numpy as np
 
     return open_source(cfg.camera), np.asarray(cfg.camera.T_body_cam, float)
+
+
+def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
+    h = restored.loaded.header
+    what = (f"resuming in saved SLAM map {restored.loaded.path} ({h.n_keyframes} keyframes, {h.n_points} points, "
+            f"saved {time.time() - h.created_wall_s:.0f} s ago); relocalising")
+    if restored.alignment is None:
+        log_event(log, "slam_map_resumed", f"{what}; alignment not restored: {restored.why_not}", map_id=h.map_id)
+        return
+    p = cfg.persistence
+    a = localizer.restore_alignment(restored.alignment, restored.age_s, p.restore_sigma_m, p.restore_sigma_growth_mps)
+    log_event(log, "slam_map_resumed", f"{what}; {a.source.value} alignment restored ({restored.age_s:.0f} s old, "
+              f"σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m)", map_id=h.map_id, sigma_m=a.sigma_m)
 
 
 def run_service(cfg: AppConfig) -> int:
@@ -56,10 +77,16 @@ def run_service(cfg: AppConfig) -> int:
     cache = GisCache(cfg.gis.cache_dir.expanduser())
     site_id = cache.save_model(model)
     source, T_body_cam = _open_camera(cfg)
-    localizer = build_localizer(cfg, source.camera_model, T_body_cam, model)
+    restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
+    localizer = build_localizer(cfg, source.camera_model, T_body_cam, model,
+                                initial_map=restored.loaded if restored else None)
+    if restored is not None:
+        _restore_alignment(cfg, localizer, restored)
+    saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
+             if cfg.persistence.enabled else None)
     bridge = Bridge(cfg.mavlink, cfg.switching).start()
     latency = LatencyTracker()
-    saved = {"t": None}
+    saved = {"t": None, "alignment": localizer.alignment}
 
     def save_fine() -> None:
         a = localizer.alignment
@@ -67,6 +94,14 @@ def run_service(cfg: AppConfig) -> int:
             cache.save_transform(site_id, "fine", a.T_ecef_slam, {"t_s": a.t_s, "sigma_m": a.sigma_m, "fitness": a.fitness})
             saved["t"] = a.t_s
             log_event(log, "t_fine_saved", f"T_fine saved to the GIS cache (site {site_id})", sigma_m=a.sigma_m)
+
+    def alignment_changed() -> None:
+        """A newly accepted alignment goes to disk with the map soon (by the saver thread)."""
+        a = localizer.alignment
+        if a is not saved["alignment"]:
+            saved["alignment"] = a
+            if a is not None and saver is not None:
+                saver.request()
 
     def hot_path(ctx: StageContext) -> None:
         while not ctx.stop.is_set():
@@ -91,6 +126,7 @@ def run_service(cfg: AppConfig) -> int:
             latency.mark(frame.seq, "wire")
             latency.finish(frame.seq)
             save_fine()
+            alignment_changed()
             ctx.beat()
 
     stage = Stage("hot-path", hot_path, deadline_s=max(2.0, 3 * cfg.camera.stall_timeout_s),
@@ -100,6 +136,8 @@ def run_service(cfg: AppConfig) -> int:
     sup.on_shutdown("close bridge", bridge.close)
     sup.on_shutdown("close localizer", localizer.close)
     sup.on_shutdown("save T_fine", save_fine)
+    if saver is not None:
+        sup.on_shutdown("save SLAM map", saver.close)
     sup.install_signal_handlers()
     sup.start("tracking")
     log_event(log, "ready", "service ready", source=cfg.camera.source, mavlink=cfg.mavlink.connect)

@@ -1,0 +1,176 @@
+"""The service's SLAM map persistence: where the map lives, what goes with it, when it is saved,
+and what is restored after a restart (docs/SERVICE.md "Restart during a GNSS outage").
+
+One file, ``<supervisor.state_dir>/slam_map.npz`` (slam/persist.py: atomic write, verified load),
+holds the SLAM map and, as an attachment covered by the same content hash, the alignment that maps
+*that* map to ECEF (with the GIS site it was made for and its wall-clock acceptance time). The
+alignment is attached only when its (map_id, reset_counter) is the saved map's, and restored only
+when they still agree and the site is this run's, so a map and an alignment of another map can
+never be paired.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from companion.config import AppConfig
+from companion.logs import log_event
+from gis.sim3 import Sim3
+from gis.types import Alignment, AlignmentSource
+from slam.persist import LoadedMap, MapFileError, clock_offset_s, load_map_file
+from slam.types import CameraModel
+
+log = logging.getLogger("terraslam.persistence")
+
+MAP_FILE = "slam_map.npz"
+
+
+def map_path(cfg: AppConfig) -> Path:
+    return cfg.supervisor.state_dir.expanduser() / MAP_FILE
+
+
+# --- the alignment as JSON -----------------------------------------------------------------------
+def alignment_json(a: Alignment, site_id: str, now_mono_s: float | None = None, now_wall_s: float | None = None) -> dict:
+    """``a`` as JSON, with the site and the wall-clock time it was accepted (its t_s is monotonic)."""
+    mono = time.monotonic() if now_mono_s is None else now_mono_s
+    wall = time.time() if now_wall_s is None else now_wall_s
+    return {
+        "site_id": site_id, "accepted_wall_s": wall - (mono - a.t_s),
+        "T_ecef_slam": a.T_ecef_slam.matrix().tolist(), "source": a.source.value, "t_s": a.t_s,
+        "reset_counter": a.reset_counter, "map_id": a.map_id, "information_6x6": np.asarray(a.information_6x6).tolist(),
+        "sigma_m": a.sigma_m, "fitness": a.fitness, "rmse_m": a.rmse_m, "n_points": a.n_points,
+        "center_slam": None if a.center_slam is None else np.asarray(a.center_slam, float).tolist(),
+        "scale_sigma": a.scale_sigma,
+    }
+
+
+def alignment_from_json(d: dict, t_offset_s: float = 0.0) -> Alignment:
+    """The Alignment of ``alignment_json`` (t_s moved by ``t_offset_s`` onto this process's clock)."""
+    info = np.asarray(d["information_6x6"], float)
+    if info.shape != (6, 6) or not np.isfinite(info).all():
+        raise ValueError("information_6x6 is not a finite 6x6 matrix")
+    return Alignment(
+        T_ecef_slam=Sim3.from_matrix(np.asarray(d["T_ecef_slam"], float)), source=AlignmentSource(d["source"]),
+        t_s=float(d["t_s"]) + t_offset_s, reset_counter=int(d["reset_counter"]), information_6x6=info,
+        sigma_m=float(d["sigma_m"]), fitness=float(d["fitness"]), rmse_m=float(d["rmse_m"]), n_points=int(d["n_points"]),
+        map_id=int(d["map_id"]), center_slam=None if d["center_slam"] is None else np.asarray(d["center_slam"], float),
+        scale_sigma=float(d["scale_sigma"]),
+    )
+
+
+# --- restore -------------------------------------------------------------------------------------
+@dataclass
+class Restored:
+    """What a restart found: the map to resume in, and its alignment (None, with the reason, when
+    the alignment cannot be used)."""
+
+    loaded: LoadedMap
+    alignment: Alignment | None
+    age_s: float  # wall-clock seconds since the alignment was accepted (0 without one)
+    why_not: str | None = None
+
+
+def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | None:
+    """The saved map (keyframe times moved onto this clock) and its alignment if it is for this GIS
+    site, this map and not older than ``persistence.max_restore_age_s``; None when there is no
+    usable map: no file (first start), or a file that cannot be used (logged with the reason; the
+    file is kept as ``slam_map.npz.bad`` for inspection and a fresh map starts)."""
+    path = map_path(cfg)
+    if not path.exists():
+        return None
+    try:
+        loaded = load_map_file(path, camera)
+    except MapFileError as e:
+        bad = path.with_name(path.name + ".bad")
+        try:
+            path.replace(bad)
+            kept = f"file moved to {bad}"
+        except OSError as oe:
+            kept = f"could not move it aside: {oe}"
+        log_event(log, "slam_map_unusable", f"{e}; starting a fresh SLAM map ({kept})",
+                  level=logging.WARNING, path=str(path))
+        return None
+    offset_s = clock_offset_s(loaded.header)
+    loaded.rebase_times(offset_s)
+    d = loaded.header.attachments.get("alignment")
+    if d is None:
+        return Restored(loaded, None, 0.0, "no alignment was saved with the map")
+    age_s = time.time() - float(d["accepted_wall_s"])
+    try:
+        a = alignment_from_json(d, offset_s)
+    except (KeyError, TypeError, ValueError) as e:
+        return Restored(loaded, None, age_s, f"saved alignment unreadable ({e})")
+    key = (loaded.header.map_id, loaded.header.reset_counter)
+    if d.get("site_id") != site_id:
+        return Restored(loaded, None, age_s, f"saved alignment is for GIS site {d.get('site_id')!r}, this run uses {site_id!r}")
+    if (a.map_id, a.reset_counter) != key:
+        return Restored(loaded, None, age_s, "saved alignment belongs to another map")
+    if age_s > cfg.persistence.max_restore_age_s:
+        return Restored(loaded, None, age_s, f"saved alignment is {age_s:.0f} s old (persistence.max_restore_age_s "
+                                             f"{cfg.persistence.max_restore_age_s:g} s)")
+    return Restored(loaded, a, age_s)
+
+
+# --- save ----------------------------------------------------------------------------------------
+class MapSaver:
+    """Saves the SLAM map (with its current alignment) in a background thread: every
+    ``save_every_s``, soon after ``request()`` (an alignment was accepted), and once more on
+    ``close()``. Never on the hot path: SlamSystem.save_map copies the map under its lock (local
+    mapping waits a few ms) and writes without it. A failed save is logged and retried next time."""
+
+    def __init__(self, slam, localizer, path: Path, site_id: str, save_every_s: float) -> None:
+        self.slam, self.localizer, self.path, self.site_id = slam, localizer, path, site_id
+        self.save_every_s = save_every_s
+        self.saves: list = []  # SavedMap of each save (sizes and times, for logs and tests)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one save at a time (thread vs close)
+        self._thread = threading.Thread(target=self._run, name="map-saver", daemon=True)
+
+    def start(self) -> "MapSaver":
+        self._thread.start()
+        return self
+
+    def request(self) -> None:
+        self._wake.set()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(self.save_every_s)
+            self._wake.clear()
+            if not self._stop.is_set():
+                self.save()
+
+    def attachments(self) -> dict:
+        a = self.localizer.alignment
+        if a is None or (a.map_id, a.reset_counter) != self.slam.current_map_key():
+            return {}
+        return {"alignment": alignment_json(a, self.site_id)}
+
+    def save(self):
+        with self._lock:
+            atts = self.attachments()
+            try:
+                info = self.slam.save_map(self.path, atts)
+            except Exception:  # disk full, permissions...: keep flying, try again next period
+                log.exception("saving the SLAM map to %s failed", self.path)
+                return None
+        if info is not None:
+            self.saves.append(info)
+            log_event(log, "slam_map_saved", f"SLAM map saved to {info.path}: {info.n_keyframes} keyframes, {info.n_points} "
+                      f"points, {info.n_bytes / 1e6:.1f} MB, lock {info.snapshot_ms:.0f} ms, write {info.write_ms:.0f} ms",
+                      keyframes=info.n_keyframes, points=info.n_points, bytes=info.n_bytes,
+                      with_alignment="alignment" in atts)
+        return info
+
+    def close(self) -> None:
+        """Stop the thread and save once more (clean shutdown)."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=30)
+        self.save()
