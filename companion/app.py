@@ -384,7 +384,7 @@ def _load_first_model(paths: Iterable[Path], cfg: AppConfig) -> GisModel:
     errors = []
     for p in paths:
         try:
-            return load_model(p, sample_spacing_m=cfg.gis.sample_spacing_m)
+            return load_model(p, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m)
         except Exception as e:  # try the next listed format; report all if none loads
             errors.append(f"{p}: {e}")
     raise ValueError("no GIS model could be loaded:\n  " + "\n  ".join(errors))

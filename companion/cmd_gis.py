@@ -32,7 +32,8 @@ def _cache(config: Optional[Path], cache_dir: Optional[Path]):
 
 @gis_app.command("import")
 def gis_import(
-    path: Path = typer.Argument(..., help="model file (PLY/OBJ/GLB + .georef.json, LAS/LAZ, CityJSON, GeoJSON) or 3D Tiles directory"),
+    path: Path = typer.Argument(..., help="model file (PLY/OBJ/GLB + .georef.json, LAS/LAZ, CityJSON, GeoJSON, OSM .osm.pbf) or 3D Tiles directory"),
+    ground_h_msl_m: Optional[float] = typer.Option(None, "--ground-h-msl-m", help="ground height above MSL for footprints without heights (OSM); default gis.footprint_ground_h_msl_m"),
     site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)"),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
@@ -43,7 +44,7 @@ def gis_import(
 
     cfg = _gis_config(config)
     try:
-        model = load_model(path, cfg.sample_spacing_m)
+        model = load_model(path, cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m if ground_h_msl_m is None else ground_h_msl_m)
     except GisFormatError as e:
         fail(str(e))
     site_id = _cache(config, cache_dir).save_model(model, site)
@@ -91,7 +92,7 @@ def gis_fetch(
     cache = _cache(config, cache_dir)
     providers = [
         HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m)
-        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m)
+        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m)
         for s in source
     ]
     try:
@@ -156,7 +157,7 @@ def align_offline(
     for f in ds.gis_files:
         try:
             console.print(f"loading GIS model {f}")
-            model = load_model(f, cfg.sample_spacing_m)
+            model = load_model(f, cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m)
             break
         except GisFormatError as e:
             errors.append(str(e))

@@ -11,8 +11,12 @@ Formats (dispatched on content, then extension):
   city object, labelled by object type.
 - GeoJSON building footprints (WGS-84 lon/lat, RFC 7946), extruded by ``height`` (m) or by
   ``building:levels`` × 3 m, else ``DEFAULT_BUILDING_HEIGHT_M``; the base is the polygon's third
-  coordinate (ellipsoidal height) if given, else ``min_height``, else ``ground_h_ellipsoid_m``.
-  OSM .osm.pbf needs pyosmium, which is not installed: convert with ``osmium export -f geojson``.
+  coordinate (ellipsoidal height) if given, else ``ground_h_msl_m`` (the site's ground, MSL, turned
+  ellipsoidal with EGM96 at the footprint) + ``min_height``. Footprints without heights and no
+  ``ground_h_msl_m`` are refused: a model at the wrong altitude would only be rejected later.
+- OpenStreetMap files (.osm.pbf, .osm XML, .osm.bz2/.osm.gz), read by pyosmium: every area tagged
+  ``building`` or ``building:part`` (closed ways and multipolygon relations, holes kept), extruded
+  with the same height rules as GeoJSON (OSM carries no ground heights: ``ground_h_msl_m`` is needed).
 - 3D Tiles 1.0/1.1 (``tileset.json`` with b3dm or glb content, as Cesium and Google Photorealistic
   3D Tiles serve them): leaf tiles, with tile transforms, RTC_CENTER / CESIUM_RTC and the glTF
   Y-up → Z-up rotation of the 3D Tiles spec. Local files only here; see gis.providers for HTTP.
@@ -21,7 +25,9 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +43,7 @@ from gis.model import (
     GisFormatError, GisModel, frame_at_centroid, merge_models, model_from_ecef,
 )
 
+log = logging.getLogger(__name__)
 LEVEL_HEIGHT_M = 3.0            # height of one OSM building:level
 DEFAULT_BUILDING_HEIGHT_M = 10.0  # footprint with neither height nor building:levels
 #: glTF is Y-up; 3D Tiles and our georeferenced files are Z-up: (x, y, z)_gltf → (x, −z, y).
@@ -50,8 +57,9 @@ _CITYJSON_LABELS = {
 }
 
 
-def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_ellipsoid_m: float = 0.0) -> GisModel:
-    """Load a GIS model file (or a 3D Tiles directory) into a GisModel; GisFormatError on bad input."""
+def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:
+    """Load a GIS model file (or a 3D Tiles directory) into a GisModel; GisFormatError on bad input.
+    ``ground_h_msl_m``: the site's ground height above MSL, for building footprints that carry none."""
     path = Path(path).expanduser()
     if path.is_dir():
         if (path / "tileset.json").is_file():
@@ -60,8 +68,8 @@ def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_ellipso
     if not path.is_file():
         raise GisFormatError(path, "no such file")
     name = path.name.lower()
-    if name.endswith(".osm.pbf") or name.endswith(".pbf"):
-        raise GisFormatError(path, "OSM PBF needs pyosmium, which is not installed; convert with `osmium export -f geojson` and load the GeoJSON")
+    if name.endswith((".pbf", ".osm", ".osm.bz2", ".osm.gz")):
+        return load_osm(path, sample_spacing_m, ground_h_msl_m)
     with open(path, "rb") as f:
         head = f.read(16)
     if head.startswith(b"ply"):
@@ -80,13 +88,13 @@ def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_ellipso
         if kind == "CityJSON":
             return load_cityjson(path, sample_spacing_m, doc)
         if kind in ("FeatureCollection", "Feature"):
-            return load_geojson(path, sample_spacing_m, ground_h_ellipsoid_m, doc)
+            return load_geojson(path, sample_spacing_m, ground_h_msl_m, doc)
         if isinstance(doc, dict) and "asset" in doc and "root" in doc:
             return load_3dtiles(path, sample_spacing_m)
         raise GisFormatError(path, f"JSON is neither CityJSON, GeoJSON nor a 3D Tiles tileset (type={kind!r})")
     if name.endswith((".las", ".laz")):
         raise GisFormatError(path, "not a LAS/LAZ file (missing 'LASF' signature)")
-    raise GisFormatError(path, "unsupported or unrecognised GIS format (PLY, OBJ, GLB/glTF, LAS/LAZ, CityJSON, GeoJSON, 3D Tiles)")
+    raise GisFormatError(path, "unsupported or unrecognised GIS format (PLY, OBJ, GLB/glTF, LAS/LAZ, CityJSON, GeoJSON, OSM, 3D Tiles)")
 
 
 # --- georeference ---------------------------------------------------------------------------
@@ -332,11 +340,11 @@ def _surfaces(b):
             yield from _surfaces(x)
 
 
-def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_ellipsoid_m: float = 0.0,
+def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None,
                  doc: dict | None = None) -> GisModel:
     doc = doc if doc is not None else _read_json(path)
     feats = doc["features"] if doc.get("type") == "FeatureCollection" else [doc]
-    footprints = []  # (rings lon/lat/h, base_h, height_m)
+    footprints = []  # Footprint
     for i, f in enumerate(feats):
         try:
             g = f["geometry"]
@@ -347,20 +355,109 @@ def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_ellipsoid_m
                 rings = [np.asarray(r, float) for r in poly]
                 if rings[0].ndim != 2 or len(rings[0]) < 4:
                     raise ValueError("polygon ring needs at least 4 positions")
-                base = float(np.mean(rings[0][:, 2])) if rings[0].shape[1] > 2 else float(props.get("min_height", ground_h_ellipsoid_m))
-                footprints.append((rings, base, height))
+                base = float(np.mean(rings[0][:, 2])) if rings[0].shape[1] > 2 else None
+                footprints.append(Footprint(rings, base, float(props.get("min_height", 0.0)), height))
         except (KeyError, TypeError, ValueError) as e:
             raise GisFormatError(path, f"feature {i}: {type(e).__name__}: {e}") from None
     if not footprints:
         raise GisFormatError(path, "GeoJSON holds no Polygon/MultiPolygon footprints")
-    all_ll = np.concatenate([r[0][:, :2] for r, _, _ in footprints])
-    origin = LocalFrame(float(all_ll[:, 1].mean()), float(all_ll[:, 0].mean()), float(np.mean([b for _, b, _ in footprints])))
-    pts, nrms = [], []
-    for rings, base, height in footprints:
-        enu = [origin.geodetic_to_enu(r[:, 1], r[:, 0], np.full(len(r), base)) for r in rings]
-        p, n = extrude_footprint(enu, height, sample_spacing_m)
+    return _extruded_buildings(path, footprints, sample_spacing_m, ground_h_msl_m)
+
+
+def load_osm(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:
+    """OSM building footprints (PBF / XML) through pyosmium's area assembler (multipolygons, holes)."""
+    import osmium
+
+    footprints = []  # Footprint
+    bad: list[str] = []  # unreadable height tags (crowd-sourced data: warn and use the fallback, not fail)
+
+    class _Buildings(osmium.SimpleHandler):
+        def area(self, a) -> None:
+            tags = {t.k: t.v for t in a.tags}
+            if "building" not in tags and "building:part" not in tags:
+                return
+            height, min_h = _osm_height(tags, bad), _osm_min_height(tags, bad)
+            try:
+                for outer in a.outer_rings():
+                    rings = [np.array([(n.lon, n.lat) for n in r], float) for r in [outer, *a.inner_rings(outer)]]
+                    footprints.append(Footprint(rings, None, min_h, height))
+            except osmium.InvalidLocationError as e:
+                kind = "way" if a.from_way() else "relation"
+                raise GisFormatError(path, f"{kind} {a.orig_id()}: {type(e).__name__}: {e}") from None
+
+    try:
+        _Buildings().apply_file(str(path), locations=True)
+    except RuntimeError as e:  # libosmium's parse errors (truncated / corrupt PBF, bad XML)
+        raise GisFormatError(path, f"not a readable OSM file: {e}") from None
+    if not footprints:
+        raise GisFormatError(path, "OSM file holds no building areas (closed ways / multipolygons tagged building)")
+    if bad:
+        log.warning("%s: %d unreadable OSM height tags (e.g. %s) replaced by building:levels or %.0f m",
+                    path, len(bad), ", ".join(bad[:3]), DEFAULT_BUILDING_HEIGHT_M)
+    return _extruded_buildings(path, footprints, sample_spacing_m, ground_h_msl_m)
+
+
+def _osm_height(tags: dict, bad: list[str]) -> float:
+    try:
+        return _building_height(tags)
+    except ValueError:
+        bad.append(f"height={tags.get('height')!r} building:levels={tags.get('building:levels')!r}")
+        try:
+            return _building_height({"building:levels": tags.get("building:levels")})
+        except (ValueError, TypeError):
+            return DEFAULT_BUILDING_HEIGHT_M
+
+
+def _osm_min_height(tags: dict, bad: list[str]) -> float:
+    try:
+        h = float(str(tags.get("min_height", "0")).rstrip(" m"))
+        if np.isfinite(h) and h >= 0:
+            return h
+    except ValueError:
+        pass
+    bad.append(f"min_height={tags.get('min_height')!r}")
+    return 0.0
+
+
+@dataclass(frozen=True)
+class Footprint:
+    rings_lonlat: list[np.ndarray]  # outer ring first, then holes; (N, 2|3) lon_deg, lat_deg[, h]
+    base_h_ellipsoid_m: float | None  # from the polygon's heights; None: ground + min_height
+    min_height_m: float  # base above ground (OSM/GeoJSON ``min_height``)
+    height_m: float  # top above ground
+
+
+def _extruded_buildings(path: Path, footprints: list[Footprint], sample_spacing_m: float,
+                        ground_h_msl_m: float | None) -> GisModel:
+    """Footprints → walls + roofs in one model (local ENU frame at the footprints' centroid)."""
+    all_ll = np.concatenate([f.rings_lonlat[0][:, :2] for f in footprints])
+    lat_c, lon_c = float(all_ll[:, 1].mean()), float(all_ll[:, 0].mean())
+    bases = []
+    for f in footprints:
+        if f.base_h_ellipsoid_m is not None:
+            bases.append(f.base_h_ellipsoid_m)
+        elif ground_h_msl_m is None:
+            raise GisFormatError(path, "building footprints carry no heights: give the site's ground height "
+                                       "(gis.footprint_ground_h_msl_m / --ground-h-msl-m)")
+        else:
+            lon, lat = f.rings_lonlat[0][:, 0].mean(), f.rings_lonlat[0][:, 1].mean()
+            bases.append(float(msl_to_ellipsoid(lat, lon, ground_h_msl_m)) + f.min_height_m)
+    origin = LocalFrame(lat_c, lon_c, float(np.mean(bases)))
+    pts, nrms, skipped = [], [], 0
+    for f, base in zip(footprints, bases):
+        # a polygon with heights is extruded from them by height_m; else from min_height up to height_m (OSM)
+        extent_m = f.height_m if f.base_h_ellipsoid_m is not None else f.height_m - f.min_height_m
+        if extent_m <= 0:
+            skipped += 1
+            continue
+        enu = [origin.geodetic_to_enu(r[:, 1], r[:, 0], np.full(len(r), base)) for r in f.rings_lonlat]
+        p, n = extrude_footprint(enu, extent_m, sample_spacing_m)
         pts.append(p)
         nrms.append(n)
+    if skipped:
+        log.warning("%s: %d footprints skipped: min_height not below height", path, skipped)
+    if not pts:
+        raise GisFormatError(path, "no footprint with a positive height (min_height ≥ height everywhere)")
     p = np.concatenate(pts)
     return GisModel(p, np.concatenate(nrms), np.full(len(p), BUILDING, np.uint8), origin, "EPSG:4979", path)
 

@@ -36,12 +36,13 @@ class FetchError(RuntimeError):
 class LocalProvider:
     paths: tuple[Path, ...]
     sample_spacing_m: float = 1.0
+    ground_h_msl_m: float | None = None  # for building footprints without heights (OSM)
 
     def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
         out = []
         for p in self.paths:
             for f in _model_files(Path(p)):
-                m = load_model(f, self.sample_spacing_m)
+                m = load_model(f, self.sample_spacing_m, self.ground_h_msl_m)
                 c = m.origin.geodetic_to_enu(lat_deg, lon_deg, m.origin.h0_ellipsoid_m)
                 if np.min(np.linalg.norm(m.points_enu[:, :2] - c[:2], axis=1)) <= radius_m:
                     out.append(m)

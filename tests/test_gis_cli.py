@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import trimesh
 
 TERRASLAM = [str(Path(sys.executable).with_name("terraslam"))]
 
@@ -52,6 +51,18 @@ def test_gis_import_and_align_offline_fail_clearly(tmp_path):
     assert r.returncode == 2 and str(bad) in r.stderr and "LAS" in r.stderr
     r = _run("align-offline", str(tmp_path / "nope"), "--cache-dir", str(tmp_path / "c"))
     assert r.returncode == 2 and "nope" in r.stderr
+
+
+def test_gis_import_osm_pbf_needs_and_takes_the_ground_height(tmp_path):
+    from test_gis_loaders import _write_osm  # same module pytest collected (rootdir-relative import)
+
+    pbf = tmp_path / "city.osm.pbf"
+    _write_osm(pbf, 47.37, 8.54)
+    r = _run("gis", "import", str(pbf), "--cache-dir", str(tmp_path / "c"))
+    assert r.returncode == 2 and str(pbf) in r.stderr and "ground height" in r.stderr
+    r = _run("gis", "import", str(pbf), "--site", "osm", "--ground-h-msl-m", "400", "--cache-dir", str(tmp_path / "c"))
+    assert r.returncode == 0, r.stderr
+    assert "site osm" in r.stdout and "EPSG:4979" in r.stdout
 
 
 def _sim_dataset(tmp_path: Path, scenario: str, frames: int) -> Path:

@@ -5,14 +5,15 @@ import json
 import struct
 
 import laspy
+import osmium
 import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
 from pyproj import CRS, Transformer
 
-from gis.geodesy import geodetic_to_ecef
-from gis.loaders import LEVEL_HEIGHT_M, load_model
+from gis.geodesy import geodetic_to_ecef, msl_to_ellipsoid
+from gis.loaders import DEFAULT_BUILDING_HEIGHT_M, LEVEL_HEIGHT_M, load_model
 from gis.model import BUILDING, GROUND, GisFormatError
 from gis.synthetic import box_city_mesh
 
@@ -93,9 +94,7 @@ def test_ply_point_cloud_egm96_heights(tmp_path):
     o3d.io.write_point_cloud(str(path), pcd)
     _sidecar(path, vertical="egm96")
     m = load_model(path)
-    lon, lat, h_msl = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*(p + OFFSET)[:, :2].T), None, None
-    lon, lat = lon
-    from gis.geodesy import msl_to_ellipsoid
+    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*(p + OFFSET)[:, :2].T)
     expect = geodetic_to_ecef(lat, lon, msl_to_ellipsoid(lat, lon, (p + OFFSET)[:, 2]))
     np.testing.assert_allclose(_model_ecef(m), expect, atol=2e-3)  # float32 PLY coordinates
     assert np.all(np.abs(np.linalg.norm(m.normals_enu, axis=1) - 1) < 1e-9)
@@ -157,13 +156,85 @@ def test_geojson_footprints_height_and_levels(tmp_path):
     ]}
     path = tmp_path / "buildings.geojson"
     path.write_text(json.dumps(fc))
-    m = load_model(path, sample_spacing_m=1.0, ground_h_ellipsoid_m=400.0)
+    with pytest.raises(GisFormatError, match="no heights"):
+        load_model(path)  # the first footprint has no z and no ground height was given
+    m = load_model(path, sample_spacing_m=1.0, ground_h_msl_m=400.0)
     assert np.all(m.labels == BUILDING)
     lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
     first = lon < lon0 + d + 1e-7
-    assert h[first].max() == pytest.approx(400 + 4 * LEVEL_HEIGHT_M, abs=1e-3)
-    assert h[~first].max() == pytest.approx(410 + 21.5, abs=1e-3)
-    assert h.min() > 399.9
+    n_geoid = float(msl_to_ellipsoid(lat0, lon0, 0.0))  # EGM96 undulation at the site (~48 m)
+    assert h[first].max() == pytest.approx(400 + n_geoid + 4 * LEVEL_HEIGHT_M, abs=0.05)
+    assert h[first].min() == pytest.approx(400 + n_geoid, abs=0.6)  # lowest wall sample: half a spacing up
+    assert h[~first].max() == pytest.approx(410 + 21.5, abs=1e-3)  # polygon z is ellipsoidal: no ground needed
+    assert h[~first].min() > 409.9
+
+
+def _write_osm(path, lat0: float, lon0: float) -> float:
+    """A real .osm.pbf (pyosmium's writer): a 4-level way, a multipolygon relation with a courtyard
+    (height 21.5 m, min_height 3 m), a building with an unreadable height, and a tagged road.
+    Returns the footprint side in degrees."""
+    d = 0.0002
+    mut = osmium.osm.mutable
+    w = osmium.SimpleWriter(str(path))
+    nid = iter(range(1, 1000))
+
+    def square(lon, lat, side):
+        ids = [next(nid) for _ in range(4)]
+        for i, (x, y) in zip(ids, [(lon, lat), (lon + side, lat), (lon + side, lat + side), (lon, lat + side)]):
+            w.add_node(mut.Node(id=i, location=(x, y), version=1))
+        return ids + ids[:1]
+
+    a = square(lon0, lat0, d)
+    outer = square(lon0 + 0.001, lat0, d)
+    inner = square(lon0 + 0.001 + d / 4, lat0 + d / 4, d / 2)
+    c = square(lon0 + 0.002, lat0, d)
+    road = square(lon0, lat0 + 0.001, d)
+    w.add_way(mut.Way(id=1, nodes=a, tags={"building": "yes", "building:levels": "4"}, version=1))
+    w.add_way(mut.Way(id=2, nodes=outer, version=1))
+    w.add_way(mut.Way(id=3, nodes=inner, version=1))
+    w.add_way(mut.Way(id=4, nodes=c, tags={"building": "yes", "height": "about 12"}, version=1))
+    w.add_way(mut.Way(id=5, nodes=road, tags={"highway": "pedestrian", "area": "yes"}, version=1))
+    w.add_relation(mut.Relation(id=1, members=[("w", 2, "outer"), ("w", 3, "inner")], version=1,
+                                tags={"type": "multipolygon", "building": "yes", "height": "21.5 m", "min_height": "3"}))
+    w.close()
+    return d
+
+
+def test_osm_pbf_buildings_ways_multipolygons_and_bad_tags(tmp_path, caplog):
+    lat0, lon0 = 47.37, 8.54
+    path = tmp_path / "city.osm.pbf"
+    d = _write_osm(path, lat0, lon0)
+    m = load_model(path, sample_spacing_m=1.0, ground_h_msl_m=400.0)
+    assert np.all(m.labels == BUILDING)
+    lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
+    g = 400.0 + float(msl_to_ellipsoid(lat0, lon0, 0.0))  # ground, ellipsoidal
+    first = lon < lon0 + d + 1e-7
+    second = (lon > lon0 + 0.001 - 1e-7) & (lon < lon0 + 0.001 + d + 1e-7)
+    third = lon > lon0 + 0.002 - 1e-7
+    assert first.sum() + second.sum() + third.sum() == len(m)  # the road area is not a building
+    assert lat.max() < lat0 + d + 1e-6
+    assert h[first].max() == pytest.approx(g + 4 * LEVEL_HEIGHT_M, abs=0.05)
+    # OSM height is the top above ground; min_height lifts the base (a building part on pillars)
+    assert h[second].max() == pytest.approx(g + 21.5, abs=0.05) and h[second].min() > g + 3 - 0.05
+    assert h[third].max() == pytest.approx(g + DEFAULT_BUILDING_HEIGHT_M, abs=0.05)
+    assert "1 unreadable OSM height tags" in caplog.text and "about 12" in caplog.text
+    # the courtyard (inner ring) has walls but no roof: no roof sample inside it
+    roof = second & (h > g + 21.5 - 0.1)
+    cx, cy = lon0 + 0.001 + d / 2, lat0 + d / 2
+    inside = (np.abs(lon[roof] - cx) < d / 4 - 1e-5) & (np.abs(lat[roof] - cy) < d / 4 - 1e-5)
+    assert roof.sum() > 100 and not inside.any()
+
+
+def test_osm_without_buildings_fails_clearly(tmp_path):
+    path = tmp_path / "roads.osm.pbf"
+    w = osmium.SimpleWriter(str(path))
+    for i in range(1, 4):
+        w.add_node(osmium.osm.mutable.Node(id=i, location=(8.54 + i * 1e-4, 47.37), version=1))
+    w.add_way(osmium.osm.mutable.Way(id=1, nodes=[1, 2, 3], tags={"highway": "residential"}, version=1))
+    w.close()
+    with pytest.raises(GisFormatError, match="no building areas") as e:
+        load_model(path)
+    assert str(path) in str(e.value)
 
 
 def _b3dm(glb: bytes, rtc: np.ndarray) -> bytes:
@@ -202,7 +273,7 @@ def test_3dtiles_b3dm_tileset(tmp_path):
     ("bad.json", b"{\"type\": \"CityJSON\", ", "JSON"),
     ("bad.geojson", b"{\"type\": \"FeatureCollection\", \"features\": [{\"geometry\": {\"type\": \"Polygon\", \"coordinates\": [[[8, 47]]]}}]}", "feature 0"),
     ("x.xyz", b"1 2 3\n", "unsupported"),
-    ("x.osm.pbf", b"\x00\x00\x00\x0d\x0a\x09OSMHeader", "pyosmium"),
+    ("x.osm.pbf", b"\x00\x00\x00\x0d\x0a\x09OSMHeader", "not a readable OSM file"),
     ("lone.b3dm", b"b3dm" + b"\x00" * 40, "tileset"),
 ])
 def test_corrupt_or_unsupported_files_fail_clearly(tmp_path, name, content, problem):
