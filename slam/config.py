@@ -37,7 +37,11 @@ class SlamConfig(BaseModel):
     periodic_ba_every_keyframes: int = Field(5, ge=0, le=1000, description="every N keyframes the background BA covers periodic_ba_window keyframes instead of the local window (0: off)")
     periodic_ba_window: int = Field(30, ge=2, le=1000, description="keyframes optimised by the periodic larger BA")
     max_reproj_px: float = Field(3.0, gt=0, le=20, description="observations above this reprojection error after BA are dropped (px)")
-    max_keyframes: int = Field(400, ge=20, le=100000, description="keyframe cap: the oldest keyframes' descriptors are dropped beyond it to keep memory flat")
+    max_keyframes: int = Field(400, ge=20, le=100000, description="keyframes kept whole (features, points, place-index entry); older ones are forgotten or kept as loop anchors (slam/mapping.py _forget_old)")
+    loop_anchor_every: int = Field(10, ge=1, le=10000, description="every N-th keyframe leaving the max_keyframes window stays as a loop anchor (features + points + place-index entry, ~100-150 KB each)")
+    max_loop_anchors: int = Field(200, ge=0, le=100000, description="loop-anchor cap: beyond it every second anchor is forgotten (older places thinner)")
+    max_trajectory_keyframes: int = Field(20000, ge=0, le=10000000, description="poses of forgotten keyframes kept for the trajectory (~0.5 KB each); the oldest go beyond it")
+    max_queued_map_updates: int = Field(32, ge=1, le=10000, description="MapUpdates held for poll_map_updates; the oldest are dropped beyond it (a full snapshot replaces all queued)")
     # loop closing
     loop_min_gap_keyframes: int = Field(30, ge=5, le=10000, description="a loop candidate must be this many keyframes older than the query")
     loop_min_votes: int = Field(25, ge=3, le=1000, description="place-recognition votes a loop candidate needs")

@@ -9,6 +9,14 @@ import numpy as np
 
 from slam.geometry import camera_center
 
+# What a forgotten keyframe keeps instead of its features: shared read-only empty arrays (a slice
+# like ``desc[:0]`` would be a view that keeps the whole feature buffer alive).
+_NO_UV = np.zeros((0, 2))
+_NO_DESC = np.zeros((0, 32), np.uint8)
+_NO_IDS = np.zeros(0, np.int64)
+for _a in (_NO_UV, _NO_DESC, _NO_IDS):
+    _a.flags.writeable = False
+
 
 @dataclass
 class Keyframe:
@@ -23,6 +31,14 @@ class Keyframe:
     @property
     def center(self) -> np.ndarray:
         return camera_center(self.T_cam_slam)
+
+    @property
+    def has_features(self) -> bool:
+        """False once the memory cap has forgotten it (only its pose is left, for the trajectory)."""
+        return len(self.desc) > 0
+
+    def feature_bytes(self) -> int:
+        return self.uv_px.nbytes + self.desc.nbytes + self.point_ids.nbytes
 
 
 @dataclass
@@ -42,6 +58,18 @@ class LocalMap:
     p_slam: np.ndarray
     desc: np.ndarray
     version: int
+
+
+@dataclass(frozen=True)
+class MapSize:
+    """Counts and bytes of what the map holds (slam.bench --memory prints these)."""
+
+    keyframes: int  # all, including forgotten ones (pose only)
+    keyframes_with_features: int
+    map_points: int
+    observations: int
+    feature_bytes: int  # keyframes' pixels + descriptors + point ids
+    point_bytes: int  # map points' positions + descriptors (arrays only)
 
 
 class SlamMap:
@@ -69,7 +97,8 @@ class SlamMap:
     def add_point(self, p_slam: np.ndarray, desc: np.ndarray, obs: dict[int, int]) -> int:
         pid = self._next_pt
         self._next_pt += 1
-        self.points[pid] = MapPoint(pid, np.asarray(p_slam, float), desc, dict(obs), min(obs))
+        # copies: a row of a batch array would keep the whole batch (e.g. a keyframe's descriptors) alive
+        self.points[pid] = MapPoint(pid, np.array(p_slam, float), np.array(desc, np.uint8), dict(obs), min(obs))
         for kf_id, i in obs.items():
             self.keyframes[kf_id].point_ids[i] = pid
         return pid
@@ -107,6 +136,31 @@ class SlamMap:
                 self.keyframes[kf_id].point_ids[i] = -1
         mo.obs.clear()
         self.points.pop(old)
+
+    def forget_keyframe(self, kf_id: int) -> None:
+        """Drop a keyframe's features and its observations; points nobody observes any more go.
+        The pose stays (trajectory); the keyframe can no longer be matched or optimised."""
+        kf = self.keyframes[kf_id]
+        for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+            mp = self.points.get(pid)
+            if mp is not None:
+                mp.obs.pop(kf_id, None)
+                if not mp.obs:
+                    del self.points[pid]
+        kf.uv_px, kf.desc, kf.point_ids = _NO_UV, _NO_DESC, _NO_IDS
+
+    def drop_keyframe(self, kf_id: int) -> None:
+        """Remove a keyframe entirely (its features must already be forgotten)."""
+        if self.keyframes[kf_id].has_features:
+            self.forget_keyframe(kf_id)
+        del self.keyframes[kf_id]
+
+    def size(self) -> MapSize:
+        kfs = self.keyframes.values()
+        pts = self.points.values()
+        return MapSize(len(self.keyframes), sum(k.has_features for k in kfs), len(self.points),
+                       sum(len(p.obs) for p in pts), sum(k.feature_bytes() for k in kfs),
+                       sum(p.p_slam.nbytes + p.desc.nbytes for p in pts))
 
     def kf_ids(self) -> list[int]:
         return sorted(self.keyframes)

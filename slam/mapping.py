@@ -3,10 +3,12 @@
 from the tracking thread; results reach it through ``Shared`` by reference swap."""
 from __future__ import annotations
 
+import bisect
 import logging
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,7 +16,7 @@ import numpy as np
 from slam.ba import BAProblem, BAResult, BAWorker
 from slam.config import SlamConfig
 from slam.geometry import camera_center, correct_pose_by_sim3, ransac_sim3, triangulate
-from slam.map import Keyframe, SlamMap
+from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import match_bf
 from slam.place import PlaceIndex
 from slam.plm import plm_window, recursive_loop_closing
@@ -24,14 +26,69 @@ from slam.types import MapUpdate
 log = logging.getLogger(__name__)
 
 
+#: per-keyframe timing histories keep the latest this many entries (about 100 bytes per keyframe)
+STATS_HISTORY = 10_000
+
+
+def _history() -> deque:
+    return deque(maxlen=STATS_HISTORY)
+
+
 @dataclass
 class MappingStats:
-    local_mapping_ms: list[float] = field(default_factory=list)  # whole keyframe processing
-    local_ba_ms: list[float] = field(default_factory=list)
-    ba_window: list[int] = field(default_factory=list)
-    loop_ms: list[float] = field(default_factory=list)  # loop correction (BA part), per closed loop
-    loops: list[tuple[int, int]] = field(default_factory=list)  # (old kf id, current kf id)
-    loop_ba_keyframes: list[int] = field(default_factory=list)  # keyframes optimised per loop (all windows)
+    """Timings for benchmarks: the latest STATS_HISTORY entries of each, plus exact totals."""
+
+    local_mapping_ms: deque = field(default_factory=_history)  # whole keyframe processing
+    local_ba_ms: deque = field(default_factory=_history)
+    ba_window: deque = field(default_factory=_history)
+    loop_ms: deque = field(default_factory=_history)  # loop correction (BA part), per closed loop
+    loops: deque = field(default_factory=_history)  # (old kf id, current kf id)
+    loop_ba_keyframes: deque = field(default_factory=_history)  # keyframes optimised per loop (all windows)
+    n_keyframes: int = 0  # keyframes mapped, all of them
+    n_loops: int = 0
+
+
+class UpdateQueue:
+    """MapUpdates for a consumer, at most ``max_len`` of them: when full the oldest is dropped
+    (counted in ``dropped``), and a full snapshot supersedes everything queued before it. A consumer
+    that fell behind re-reads the whole map with ``SlamSystem.map_points()``. Nothing grows when
+    nobody polls (the pipeline does not). Same interface as queue.SimpleQueue for put/get_nowait."""
+
+    def __init__(self, max_len: int) -> None:
+        self._q: deque[MapUpdate] = deque(maxlen=max_len)
+        self._lock = threading.Lock()
+        self.dropped = 0
+
+    def put(self, u: MapUpdate) -> None:
+        with self._lock:
+            if u.full:
+                self.dropped += len(self._q)
+                self._q.clear()
+            elif len(self._q) == self._q.maxlen:
+                self.dropped += 1
+            self._q.append(u)
+
+    def get_nowait(self) -> MapUpdate:
+        with self._lock:
+            if not self._q:
+                raise queue.Empty
+            return self._q.popleft()
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+
+@dataclass(frozen=True)
+class MapMemory:
+    """What local mapping holds, for the memory benchmark (slam.bench --memory)."""
+
+    map: MapSize
+    loop_anchors: int  # old keyframes kept with features for loop closing
+    place_entries: int  # keyframes in the place-recognition index
+    place_bytes: int  # descriptors stored in the place index
+    queued_keyframes: int
+    queued_updates: int
+    dropped_updates: int
 
 
 @dataclass
@@ -51,9 +108,12 @@ class LocalMapper:
         self.map = slam_map
         self.reset_counter = reset_counter
         self.stats = MappingStats()
-        self.updates: queue.SimpleQueue[MapUpdate] = queue.SimpleQueue()
+        self.updates = UpdateQueue(config.max_queued_map_updates)
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._place = PlaceIndex()
+        self._anchors: list[int] = []  # loop anchors: old keyframes kept with features (see _forget_old)
+        self._retired_upto = -1  # keyframes with ids up to this one have left the active window
+        self._n_retired = 0
         self._ba = BAWorker()
         self._lm_version = 0
         self._correction_gen = 0
@@ -105,6 +165,7 @@ class LocalMapper:
                     self._finish_ba(wait=True)
                     self.map = item.new_map
                     self._place = PlaceIndex()
+                    self._anchors, self._retired_upto, self._n_retired = [], -1, 0
                     self.reset_counter += 1
                 else:
                     self._process(item)
@@ -122,7 +183,7 @@ class LocalMapper:
             m.add_keyframe(kf)
             for i, pid in enumerate(kf.point_ids.tolist()):  # freshest appearance for matching
                 if pid >= 0:
-                    m.points[pid].desc = kf.desc[i]
+                    m.points[pid].desc = kf.desc[i].copy()  # a row view would keep kf.desc alive
             ids = m.kf_ids()
         self._finish_ba(wait=False)
         self._triangulate(kf, ids)
@@ -130,9 +191,10 @@ class LocalMapper:
         self._local_ba(kf, ids)  # submitted to the worker; applied when done (_finish_ba)
         self._publish(ids, kf)
         self.stats.local_mapping_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats.n_keyframes += 1
         if c.loop_closing != "off":
             self._loop(kf)  # waits for the in-flight local BA before moving the map
-        self._forget_old(ids)
+        self._forget_old()
 
     # --- local mapping --------------------------------------------------------------------------
     def _triangulate(self, kf: Keyframe, ids: list[int]) -> None:
@@ -220,7 +282,7 @@ class LocalMapper:
         m = self.map
         c = self.config
         with m.lock:
-            kf_ids = [k for k in kf_ids if k in m.keyframes]
+            kf_ids = [k for k in kf_ids if k in m.keyframes and m.keyframes[k].has_features]
             pids = sorted({int(p) for k in kf_ids for p in m.keyframes[k].point_ids if p >= 0})
             pids = [p for p in pids if p in m.points]
             if len(pids) < 10:
@@ -290,29 +352,54 @@ class LocalMapper:
                 reset_counter=self.reset_counter, full=False, map_id=self.reset_counter))
         self._changed = []
 
-    def _forget_old(self, ids: list[int]) -> None:
-        """Memory cap: beyond max_keyframes, the oldest keyframes lose their descriptors and the
-        points only they observe are removed (their poses stay for the trajectory)."""
-        extra = len(ids) - self.config.max_keyframes
-        if extra <= 0:
-            return
+    def _forget_old(self) -> None:
+        """Memory cap (slam.max_keyframes, loop_anchor_every, max_loop_anchors, max_trajectory_keyframes).
+
+        The newest ``max_keyframes`` keyframes are kept whole. A keyframe leaving that window becomes
+        a loop anchor if it is the ``loop_anchor_every``-th to leave (it keeps its features, its
+        points and its place-index entry, so a revisit of that place can still close a loop), else
+        it is forgotten: features, observations, place-index entry and the points only it observed
+        go; its pose stays for the trajectory. Beyond ``max_loop_anchors`` every second anchor is
+        forgotten (older places keep a thinner coverage). Beyond ``max_trajectory_keyframes``
+        forgotten keyframes the oldest poses are dropped too.
+        """
+        c = self.config
         m = self.map
-        if len(self._place) > self.config.max_keyframes * 1.1:
-            self._place.keep_only(set(ids[extra:]))
+        forgotten: list[int] = []
         with m.lock:
-            for k in ids[:extra]:
-                kf = m.keyframes[k]
-                if len(kf.desc) == 0:
-                    continue
-                for pid in kf.point_ids[kf.point_ids >= 0].tolist():
-                    mp = m.points.get(pid)
-                    if mp is not None:
-                        mp.obs.pop(k, None)
-                        if len(mp.obs) == 0:
-                            m.points.pop(pid)
-                kf.uv_px = kf.uv_px[:0]
-                kf.desc = kf.desc[:0]
-                kf.point_ids = kf.point_ids[:0]
+            ids = m.kf_ids()
+            first_active = ids[-c.max_keyframes] if len(ids) > c.max_keyframes else None
+            if first_active is not None:
+                lo = bisect.bisect_right(ids, self._retired_upto)
+                hi = bisect.bisect_left(ids, first_active)
+                for k in ids[lo:hi]:
+                    self._n_retired += 1
+                    if c.max_loop_anchors and self._n_retired % c.loop_anchor_every == 0 and m.keyframes[k].has_features:
+                        self._anchors.append(k)
+                    elif m.keyframes[k].has_features:
+                        m.forget_keyframe(k)
+                        forgotten.append(k)
+                    self._retired_upto = k
+            if len(self._anchors) > c.max_loop_anchors:
+                for k in self._anchors[1::2]:
+                    m.forget_keyframe(k)
+                    forgotten.append(k)
+                self._anchors = self._anchors[::2]
+            n_poses_only = len(m.keyframes) - min(len(ids), c.max_keyframes) - len(self._anchors)
+            if n_poses_only > c.max_trajectory_keyframes:  # trimmed to 90 % of the cap (amortised)
+                anchors = set(self._anchors)
+                old = [k for k in ids if k <= self._retired_upto and k not in anchors]
+                for k in old[: n_poses_only - int(0.9 * c.max_trajectory_keyframes)]:
+                    m.drop_keyframe(k)
+        if forgotten:
+            self._place.remove(forgotten)
+
+    def memory(self) -> MapMemory:
+        """Sizes of the map, loop anchors, place index and queues (takes the map lock briefly)."""
+        with self.map.lock:
+            size = self.map.size()
+        return MapMemory(size, len(self._anchors), len(self._place), self._place.nbytes(), self._inbox.qsize(),
+                         len(self.updates), self.updates.dropped)
 
     # --- loop closing ---------------------------------------------------------------------------
     def _loop(self, kf: Keyframe) -> None:
@@ -409,6 +496,7 @@ class LocalMapper:
         self.stats.loop_ba_keyframes.append(sum(len(x) for x in windows))
         self.stats.loop_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.loops.append((old_id, kf.kf_id))
+        self.stats.n_loops += 1
         self._publish_full()
 
     def _publish_full(self) -> None:

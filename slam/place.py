@@ -3,7 +3,9 @@
 Each keyframe contributes a spread subset (400) of its ORB descriptors to an OpenCV brute-force Hamming
 matcher (compiled, appended incrementally with ``add``); a query (all its descriptors) votes with its ratio-test-passing
 nearest neighbours for the keyframes they came from. No vocabulary to train or ship; cost grows
-linearly with the number of keyframes (documented; fine for the flights we target).
+linearly with the number of keyframes held, which local mapping bounds: the newest
+``slam.max_keyframes`` keyframes plus at most ``slam.max_loop_anchors`` older ones (slam/mapping.py
+``_forget_old``), 400 × 32 B = 12.8 KB of descriptors each.
 """
 from __future__ import annotations
 
@@ -22,14 +24,17 @@ class PlaceCandidate:
 class PlaceIndex:
     def __init__(self, per_keyframe: int = 400, ratio: float = 0.8, max_dist: int = 64) -> None:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self._kf_ids: list[int] = []
-        self._stored: dict[int, np.ndarray] = {}
+        self._kf_ids: list[int] = []  # train-set order of the matcher (may still hold removed ones)
+        self._stored: dict[int, np.ndarray] = {}  # the live entries
         self.per_keyframe = per_keyframe
         self.ratio = ratio
         self.max_dist = max_dist
 
     def __len__(self) -> int:
-        return len(self._kf_ids)
+        return len(self._stored)
+
+    def nbytes(self) -> int:
+        return sum(d.nbytes for d in self._stored.values())
 
     def _subset(self, desc: np.ndarray) -> np.ndarray:
         if len(desc) <= self.per_keyframe:
@@ -42,17 +47,20 @@ class PlaceIndex:
         self._kf_ids.append(kf_id)
         self._stored[kf_id] = sub
 
-    def keep_only(self, kf_ids: set[int]) -> None:
-        """Forget every keyframe not in kf_ids (memory cap); rebuilds the matcher's train set."""
-        self._matcher.clear()
-        self._kf_ids = [k for k in self._kf_ids if k in kf_ids]
-        self._stored = {k: self._stored[k] for k in self._kf_ids}
-        if self._kf_ids:
-            self._matcher.add([self._stored[k] for k in self._kf_ids])
+    def remove(self, kf_ids) -> None:
+        """Forget these keyframes (memory cap). Queries ignore them at once; the matcher's train set
+        is rebuilt once removed entries exceed 10 % of the live ones (amortised)."""
+        for k in kf_ids:
+            self._stored.pop(k, None)
+        if len(self._kf_ids) - len(self._stored) > 0.1 * len(self._stored):
+            self._matcher.clear()
+            self._kf_ids = [k for k in self._kf_ids if k in self._stored]
+            if self._kf_ids:
+                self._matcher.add([self._stored[k] for k in self._kf_ids])
 
     def query(self, desc: np.ndarray, exclude_after_kf_id: int | None = None, top: int = 3) -> list[PlaceCandidate]:
         """Keyframes with the most votes, best first; keyframes with id > exclude_after_kf_id are skipped."""
-        if len(self._kf_ids) == 0 or len(desc) < 2:
+        if len(self._stored) == 0 or len(desc) < 2:
             return []
         knn = self._matcher.knnMatch(np.ascontiguousarray(desc), k=2)
         votes = np.zeros(len(self._kf_ids), int)
@@ -60,6 +68,7 @@ class PlaceIndex:
             if len(pair) == 2 and pair[0].distance < self.max_dist and pair[0].distance < self.ratio * pair[1].distance:
                 votes[pair[0].imgIdx] += 1
         ids = np.array(self._kf_ids)
+        votes[[k not in self._stored for k in self._kf_ids]] = 0
         if exclude_after_kf_id is not None:
             votes[ids > exclude_after_kf_id] = 0
         order = np.argsort(-votes)[:top]

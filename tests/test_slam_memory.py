@@ -1,0 +1,170 @@
+"""Memory bounds of slam/ (issue 4): the map, place index, loop anchors and queues stay within
+their caps over a long constructed flight, loop closing still finds an anchored place, and a
+SlamSystem closed leaves no worker process or thread behind. RSS figures belong to
+``python -m slam.bench --memory`` (docs/BENCHMARKS.md), not to these tests."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import psutil
+import pytest
+
+from slam.config import SlamConfig
+from slam.map import Keyframe, SlamMap
+from slam.mapping import LocalMapper, UpdateQueue
+from slam.system import SlamSystem
+from slam.tracking import Shared
+from slam.types import CameraModel, Frame, MapUpdate
+
+K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+W_PX, H_PX = 640, 480
+HEIGHT_M = 50.0
+STEP_M = 6.0
+FEATURES = 300
+N_OUT = 50  # keyframes out, then as many back
+
+
+def nadir_T_cam_world(x_m: float) -> np.ndarray:
+    """Camera looking straight down from (x, 0, HEIGHT_M): x_cam = x, y_cam = -y, z_cam = -z."""
+    R_wc = np.diag([1.0, -1.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3] = R_wc.T
+    T[:3, 3] = -R_wc.T @ np.array([x_m, 0.0, HEIGHT_M])
+    return T
+
+
+class StripWorld:
+    """Ground points along a 360 m strip, each with its own random ORB-like descriptor; keyframes
+    are exact nadir views (the tracker's job is done by ``associate``: features of world points
+    that a recent keyframe maps get that map point, as the tracker's local-map matching would)."""
+
+    def __init__(self, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        n = 15000
+        self.p = np.c_[rng.uniform(-60, 360, n), rng.uniform(-30, 30, n), rng.normal(0, 1.5, n)]
+        self.desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+        self.world_of: dict[tuple[int, int], int] = {}  # (kf id, feature) -> world point
+
+    def keyframe(self, m: SlamMap, x_m: float, t_s: float, recent: int = 10) -> Keyframe:
+        T = nadir_T_cam_world(x_m)
+        pc = self.p @ T[:3, :3].T + T[:3, 3]
+        uv = pc[:, :2] / pc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+        vis = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < W_PX) & (uv[:, 1] > 0) & (uv[:, 1] < H_PX))[:FEATURES]
+        pids = np.full(len(vis), -1, np.int64)
+        with m.lock:
+            by_world = {}
+            for k in m.kf_ids()[-recent:]:
+                for f, pid in enumerate(m.keyframes[k].point_ids.tolist()):
+                    if pid >= 0 and pid in m.points:
+                        by_world[self.world_of[(k, f)]] = pid
+        for f, w in enumerate(vis):
+            pids[f] = by_world.get(int(w), -1)
+        kf = Keyframe(m.new_kf_id(), t_s, int(t_s * 10), T, uv[vis], self.desc[vis].copy(), pids)
+        for f, w in enumerate(vis):
+            self.world_of[(kf.kf_id, f)] = int(w)
+        return kf
+
+
+def fly(config: SlamConfig, xs_m: np.ndarray) -> tuple[LocalMapper, list]:
+    """Feed a LocalMapper (real thread, real BA worker, real place index) one keyframe per x."""
+    world = StripWorld()
+    m = SlamMap()
+    shared = Shared(active_map=m)
+    mapper = LocalMapper(K, config, shared, m)
+    sizes = []
+    first = world.keyframe(m, xs_m[0], 0.0)
+    with m.lock:
+        m.add_keyframe(first)
+    for n, x in enumerate(xs_m[1:], 1):
+        mapper.insert_keyframe(world.keyframe(m, x, n * 0.5))
+        assert mapper.wait_idle(60)
+        sizes.append(mapper.memory())
+    return mapper, sizes
+
+
+CAPS = dict(max_keyframes=20, loop_anchor_every=5, max_loop_anchors=6, max_trajectory_keyframes=40,
+            loop_min_gap_keyframes=30, max_queued_map_updates=8, local_window=6, periodic_ba_every_keyframes=0,
+            ba_iterations=3)
+
+
+@pytest.fixture(scope="module")
+def out_and_back():
+    """N_OUT keyframes out along the strip, as many back over the same ground (a revisit beyond
+    the 20-keyframe window: only the loop anchors remember the start)."""
+    xs = np.r_[np.arange(N_OUT) * STEP_M, np.arange(N_OUT - 1, -1, -1) * STEP_M + 1.0]
+    mapper, sizes = fly(SlamConfig(**CAPS), xs)
+    yield mapper, sizes
+    mapper.close()
+
+
+def test_map_place_index_and_queues_stay_within_caps(out_and_back):
+    mapper, sizes = out_and_back
+    c = mapper.config
+    most_whole = c.max_keyframes + c.max_loop_anchors
+    assert len(sizes) == 2 * N_OUT - 1
+    for s in sizes:
+        assert s.map.keyframes_with_features <= most_whole
+        assert s.loop_anchors <= c.max_loop_anchors
+        assert s.place_entries <= most_whole
+        assert s.map.keyframes <= most_whole + c.max_trajectory_keyframes
+        assert s.queued_updates <= c.max_queued_map_updates
+    late = sizes[N_OUT:]
+    # bounded, not merely slow: the second half holds no more than the first half's peak
+    assert max(s.map.map_points for s in late) <= 1.2 * max(s.map.map_points for s in sizes[:N_OUT])
+    assert max(s.map.feature_bytes for s in late) <= most_whole * FEATURES * (16 + 32 + 8)
+    assert max(s.place_bytes for s in late) <= most_whole * 400 * 32
+    assert sizes[-1].dropped_updates > 0  # nobody polled: the queue dropped instead of growing
+    m = mapper.map
+    with m.lock:  # no point is held by a forgotten keyframe's observation
+        featured = {k for k, kf in m.keyframes.items() if kf.has_features}
+        assert all(set(p.obs) <= featured for p in m.points.values())
+        assert all(p.desc.base is None for p in m.points.values())  # own copies, no views of keyframes
+
+
+def test_loop_closes_on_an_anchor_beyond_the_keyframe_window(out_and_back):
+    mapper, _ = out_and_back
+    loops = list(mapper.stats.loops)
+    assert loops, "the return over the start found no loop"
+    old, cur = loops[0]
+    assert cur - old > mapper.config.max_keyframes  # the old keyframe had left the whole-keyframe window
+
+
+def test_update_queue_is_bounded_and_a_full_snapshot_supersedes():
+    def upd(full: bool) -> MapUpdate:
+        return MapUpdate(0.0, np.zeros((5, 3)), np.arange(5), np.full(5, 2, np.int32), np.zeros(1), np.zeros((1, 3)),
+                         0, full=full, map_id=0)
+
+    q = UpdateQueue(4)
+    for _ in range(10):
+        q.put(upd(False))
+    assert len(q) == 4 and q.dropped == 6
+    q.put(upd(True))
+    assert len(q) == 1 and q.dropped == 10 and q.get_nowait().full
+
+
+def _slam_threads() -> set[threading.Thread]:
+    """Mapping threads and BA pools' manager threads alive now."""
+    return {t for t in threading.enumerate() if t.name == "slam-mapping" or type(t).__name__ == "_ExecutorManagerThread"}
+
+
+def test_slam_system_close_leaves_no_worker_process_or_thread():
+    cam = CameraModel(W_PX, H_PX, K, np.zeros(5))
+    proc = psutil.Process()
+    before = {c.pid for c in proc.children(recursive=True)}
+    threads_before = _slam_threads()  # another test's mapper may still be open
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        with SlamSystem(cam, SlamConfig()) as s:
+            for i in range(3):
+                s.track(Frame(rng.integers(0, 255, (H_PX, W_PX), dtype=np.uint8), i / 10, i))
+            assert s.mapper._thread.is_alive()
+        assert not s.mapper._thread.is_alive()
+    s.close()  # closing twice is harmless
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and ({c.pid for c in proc.children(recursive=True)} - before
+                                           or _slam_threads() - threads_before):
+        time.sleep(0.05)
+    assert {c.pid for c in proc.children(recursive=True)} - before == set()
+    assert _slam_threads() - threads_before == set()
