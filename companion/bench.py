@@ -18,6 +18,7 @@ Every figure is a number or None; a None has its reason in ``bench["reasons"][ke
 """
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -509,15 +510,27 @@ def suite_table(figs: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_suite(runs: list[BenchRun], out_dir: Path) -> list[Path]:
+@dataclass(frozen=True)
+class SuiteBoxes:
+    """What the suite plot needs from one run (kept instead of the BenchRun, whose GIS model and
+    per-frame records would otherwise stay alive until the whole suite is done)."""
+
+    name: str
+    err_3d_m: np.ndarray
+    latency_ms: np.ndarray
+
+    @staticmethod
+    def of(br: BenchRun) -> "SuiteBoxes":
+        fixes = [r.fix for r in br.run.records if r.fix is not None and r.seq in br.run.truth_ecef_m]
+        e = fix_errors(fixes, np.stack([br.run.truth_ecef_m[f.seq] for f in fixes])).err_3d_m if fixes else np.array([np.nan])
+        return SuiteBoxes(br.name, e, np.array(br.run.wall_track_ms))
+
+
+def plot_suite(boxes: list[SuiteBoxes], out_dir: Path) -> list[Path]:
     """Per-scenario boxes of 3D error and tracking latency (one PNG)."""
     import matplotlib.pyplot as plt
 
-    names, errs, lats = [], [], []
-    for br in runs:
-        fixes = [r.fix for r in br.run.records if r.fix is not None and r.seq in br.run.truth_ecef_m]
-        e = fix_errors(fixes, np.stack([br.run.truth_ecef_m[f.seq] for f in fixes])).err_3d_m if fixes else np.array([np.nan])
-        names.append(br.name), errs.append(e), lats.append(np.array(br.run.wall_track_ms))
+    names, errs, lats = [b.name for b in boxes], [b.err_3d_m for b in boxes], [b.latency_ms for b in boxes]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4))
     a1.boxplot([e[np.isfinite(e)] for e in errs], tick_labels=names, showfliers=False)
     a1.axhline(0.21, color="C3", ls="--", lw=0.8, label="TerraSLAM mean 0.21 m")
@@ -583,13 +596,15 @@ def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dat
 def bench_suite(cfg: AppConfig, out_dir: Path, *, n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False,
                 scenarios: tuple[str, ...] = SUITE, progress: Progress | None = None, receiver: str | None = None) -> list[dict]:
     """Every scenario into out_dir/NAME/, then suite.md (comparison table), suite.json, suite_boxes.png."""
-    figs, runs = [], []
+    figs, boxes = [], []
     for name in scenarios:
         fig, br = bench_one(cfg, out_dir / name, scenario=name, n_frames=n_frames, seed=seed, fps=fps,
                             ablation=ablation and name == "nominal", progress=progress, receiver=receiver)
         figs.append(fig)
-        runs.append(br)
+        boxes.append(SuiteBoxes.of(br))
+        del br  # the run's GIS model, records and SLAM map go now, not after the last scenario
+        gc.collect()
     (out_dir / "suite.json").write_text(json.dumps(figs, indent=2, default=_json_default))
     (out_dir / "suite.md").write_text("# Benchmark suite\n\n" + suite_table(figs))
-    plot_suite(runs, out_dir)
+    plot_suite(boxes, out_dir)
     return figs

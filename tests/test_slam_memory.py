@@ -168,3 +168,17 @@ def test_slam_system_close_leaves_no_worker_process_or_thread():
         time.sleep(0.05)
     assert {c.pid for c in proc.children(recursive=True)} - before == set()
     assert _slam_threads() - threads_before == set()
+
+
+def test_place_index_ignores_removed_entries_before_the_matcher_is_rebuilt():
+    from slam.place import PlaceIndex
+
+    rng = np.random.default_rng(3)
+    descs = [rng.integers(0, 256, (300, 32), dtype=np.uint8) for _ in range(20)]
+    idx = PlaceIndex()
+    for k, d in enumerate(descs):
+        idx.add(k, d)
+    idx.remove([7])  # 1 of 20: below the 10 % rebuild threshold, the matcher still holds it
+    assert len(idx) == 19 and idx.nbytes() == 19 * 300 * 32
+    assert all(c.kf_id != 7 for c in idx.query(descs[7]))
+    assert idx.query(descs[8])[0].kf_id == 8
