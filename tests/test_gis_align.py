@@ -270,3 +270,51 @@ def test_update_kalman_and_covariance_intersection():
     assert np.linalg.eigvalsh(P_ci - P_k)[0] > -1e-9
     assert np.trace(P_ci[3:6, 3:6]) <= np.trace(P[3:6, 3:6]) + 1e-9
     assert _update(np.zeros(5), M, R, P, correlated=False)[2] == 0.0
+
+
+def _register_at(tuner, city, c_ground, seed=2):
+    """A clean SLAM-like cloud around c_ground registered with a GNSS-like prior 0.8 m off at the
+    camera 60 m above it (the pipeline's prior-aware path)."""
+    cam = c_ground + np.array([0.0, 0.0, 60.0])
+    p_slam = _slam(slam_like_cloud(city, c_ground, 60, 3000, noise_m=0.05, seed=seed))
+    return tuner.register(p_slam, _prior_about(cam, (0.6, -0.5, 0.2)), 1.0, 0, center_slam=_slam(cam))
+
+
+def _same_registration(a, b):
+    assert a.reason == b.reason == "ok", (a.reason, b.reason)
+    np.testing.assert_allclose(a.alignment.T_ecef_slam.matrix(), b.alignment.T_ecef_slam.matrix(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.alignment.information_6x6, b.alignment.information_6x6, rtol=1e-9)
+    assert (a.sigma_m, a.spread_m, a.fitness, a.n_target) == pytest.approx((b.sigma_m, b.spread_m, b.fitness, b.n_target), rel=1e-9)
+
+
+def test_cached_crop_gives_the_same_registration_as_a_fresh_crop(city):
+    """A registration 10 m on from the last one reuses its crop (no new KD-tree), which holds more
+    of the model than a fresh crop would, and registers exactly as a fresh crop does."""
+    c1, c2 = np.array([27.0, -10.0, 0.0]), np.array([37.0, -10.0, 0.0])
+    cached = FineTuner(city)
+    assert _register_at(cached, city, c1, seed=5).reason == "ok"
+    reg_cached = _register_at(cached, city, c2)
+    assert cached._crops.n_built == 1  # reused
+    fresh = FineTuner(city)
+    reg_fresh = _register_at(fresh, city, c2)
+    assert fresh._crops.n_built == 1
+    assert len(cached._crops._last.points) > len(fresh._crops._last.points)  # a strictly larger crop was reused
+    _same_registration(reg_cached, reg_fresh)
+    err = np.linalg.norm(reg_cached.alignment.T_ecef_slam.apply(_slam(c2)) - T_ECEF_SLAM.apply(_slam(c2)))
+    assert err < 3 * reg_cached.sigma_m and err < 0.2
+
+
+def test_registration_near_the_crop_border_recrops(city):
+    """When the next registration's square (plus the correspondence distance) leaves the cached
+    crop, a new crop is built around it, and it registers as a fresh tuner does."""
+    c1, c3 = np.array([27.0, -10.0, 0.0]), np.array([27.0 + 40.0, -10.0, 0.0])
+    tuner = FineTuner(city)
+    assert _register_at(tuner, city, c1, seed=5).reason == "ok"
+    old = tuner._crops._last
+    half = tuner.config.crop_size_m / 2 + tuner.config.max_correspondence_m
+    assert c3[0] + half > (old.box[2] + 1) * old.tile_m  # c3's square leaves the old crop
+    reg = _register_at(tuner, city, c3)
+    new = tuner._crops._last
+    assert tuner._crops.n_built == 2 and new is not old
+    assert new.box[0] * new.tile_m <= c3[0] - half and c3[0] + half <= (new.box[2] + 1) * new.tile_m
+    _same_registration(reg, _register_at(FineTuner(city), city, c3))

@@ -63,7 +63,9 @@ index (built once, eagerly, in the constructor).
 from __future__ import annotations
 
 import logging
+import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,6 +94,10 @@ CHI2_999 = {5: 20.52, 7: 24.32}  # χ² 99.9 % quantiles by degrees of freedom
 UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
 ALL_DOF = (0, 1, 2, 3, 4, 5, 6)   # [rot e, rot n, rot u, t e, t n, t u, log-scale]
 TILT_HELD_DOF = (2, 3, 4, 5, 6)   # yaw, translation, scale
+ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton step moves no cloud point more than this
+MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
+TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
+MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
 
 
 @dataclass(frozen=True)
@@ -130,6 +136,84 @@ def enu_sim3(origin: LocalFrame) -> Sim3:
     return Sim3(1.0, origin.R_ecef_enu, origin.origin_ecef_m)
 
 
+@dataclass(frozen=True)
+class _Crop:
+    """The GIS model over a box of whole tiles, voxelised on the global voxel grid, with its KD-tree
+    (ENU coordinates). Tiles are concatenated in index order, so any crop holding a tile holds the
+    same points for it in the same order: a registration gets the same correspondences from any
+    crop that covers the tiles it needs."""
+
+    box: tuple[int, int, int, int]   # tile indices (i0, j0, i1, j1), inclusive
+    tile_m: float
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+
+    def covers(self, box: tuple[int, int, int, int]) -> bool:
+        i0, j0, i1, j1 = self.box
+        return i0 <= box[0] and j0 <= box[1] and box[2] <= i1 and box[3] <= j1
+
+    def spacing_m(self, c_enu: np.ndarray, half_m: float) -> float:
+        """Median nearest-neighbour distance of the crop's points within half_m of c_enu (≤ 300,
+        taken in the crop's order: the same whichever covering crop is asked)."""
+        inner = np.flatnonzero(np.all(np.abs(self.points[:, :2] - c_enu[:2]) <= half_m, axis=1))
+        if len(inner) < 2:
+            return 0.0
+        sample = self.points[inner[:: max(1, len(inner) // 300)]]
+        return float(np.median(self.tree.query(sample, k=2)[0][:, 1]))
+
+
+class _CropCache:
+    """Fixed-size GIS crops (digital-twin §III-E) without rebuilding them every registration:
+    the model is voxelised per tile once (LRU-cached), and the last crop and its KD-tree are reused
+    while the next registration needs no tile outside it. Thread-safe."""
+
+    def __init__(self, model: GisModel, voxel_m: float) -> None:
+        self._model = model
+        self._voxel_m = voxel_m
+        self.tile_m = voxel_m * max(1, round(TILE_M / voxel_m))  # tile edges on voxel edges: no voxel straddles two tiles
+        self._tiles: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._last: _Crop | None = None
+        self._lock = threading.Lock()
+        self.n_built = 0  # crops (KD-trees) built so far
+
+    def get(self, c_enu: np.ndarray, half_m: float) -> _Crop:
+        """A crop holding every model point within half_m (horizontally, square) of c_enu."""
+        lo = np.floor((np.asarray(c_enu[:2], float) - half_m) / self.tile_m).astype(int)
+        hi = np.floor((np.asarray(c_enu[:2], float) + half_m) / self.tile_m).astype(int)
+        box = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+        with self._lock:
+            if self._last is not None and self._last.covers(box):
+                return self._last
+            keys = [(i, j) for j in range(box[1], box[3] + 1) for i in range(box[0], box[2] + 1)]
+            self._voxelise_missing([k for k in keys if k not in self._tiles])
+            parts = [self._tiles[k] for k in keys]
+            for k in keys:
+                self._tiles.move_to_end(k)
+            while len(self._tiles) > max(MAX_CACHED_TILES, len(keys)):
+                self._tiles.popitem(last=False)
+            pts = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3))
+            nrm = np.concatenate([n for _, n in parts]) if parts else np.zeros((0, 3))
+            self._last = _Crop(box, self.tile_m, pts, nrm, cKDTree(pts, balanced_tree=False))
+            self.n_built += 1
+            return self._last
+
+    def _voxelise_missing(self, keys: list[tuple[int, int]]) -> None:
+        """Voxelise the model over the given tiles in one pass (a model crop per tile: the points on a
+        tile edge come twice and fall in the same voxel, which averages them)."""
+        if not keys:
+            return
+        idx = np.concatenate([self._model.crop(np.r_[(np.array(k) + 0.5) * self.tile_m, 0.0], self.tile_m) for k in keys])
+        p, n = _voxel_global(self._model.points_enu[idx], self._model.normals_enu[idx], self._voxel_m)
+        tile = np.floor(p[:, :2] / self.tile_m).astype(int)
+        order = np.lexsort((tile[:, 0], tile[:, 1]))  # stable: voxel order kept within a tile
+        p, n, tile = p[order], n[order], tile[order]
+        for k in keys:
+            lo, hi = np.searchsorted(tile[:, 1], k[1], "left"), np.searchsorted(tile[:, 1], k[1], "right")
+            a, b = lo + np.searchsorted(tile[lo:hi, 0], k[0], "left"), lo + np.searchsorted(tile[lo:hi, 0], k[0], "right")
+            self._tiles[k] = (p[a:b], n[a:b])
+
+
 class FineTuner:
     def __init__(self, model: GisModel, config: AlignmentConfig | None = None) -> None:
         self.model = model
@@ -137,6 +221,7 @@ class FineTuner:
         self._T_ecef_enu = enu_sim3(model.origin)
         self._T_enu_ecef = self._T_ecef_enu.inverse()
         _ = model._grid  # build the crop index now, not in the first (timed) refine
+        self._crops = _CropCache(model, self.config.target_voxel_m)
 
     def refine(self, points_slam: np.ndarray, initial: Alignment, t_s: float, reset_counter: int,
                center_slam: np.ndarray | None = None, map_id: int = 0) -> Alignment | None:
@@ -160,33 +245,32 @@ class FineTuner:
         c = T_enu_slam.apply(c_slam)
         half = cfg.crop_size_m / 2
         src = src[np.all(np.abs(src[:, :2] - c[:2]) <= half, axis=1)] - c
-        idx = self.model.crop(c, cfg.crop_size_m)
-        src = _voxel(src, cfg.source_voxel_m)
+        src = _subsample(_voxel(src, cfg.source_voxel_m), MAX_SOURCE_POINTS)
         if len(src) < cfg.min_points:
             return Registration(None, f"only {len(src)} SLAM points in the {cfg.crop_size_m:.0f} m crop", n_source=len(src))
-        if len(idx) < cfg.min_points:
-            return Registration(None, f"GIS crop holds only {len(idx)} points (outside the model?)", n_target=len(idx))
-        tgt, tgt_n = _voxel_with_normals(self.model.points_enu[idx] - c, self.model.normals_enu[idx], cfg.target_voxel_m)
-        tree = cKDTree(tgt)
-        # Correspondence distances never drop below the model's own point spacing (a sparse
-        # model would otherwise lose true correspondences and report a low fitness).
-        spacing = float(np.median(tree.query(tgt[:: max(1, len(tgt) // 300)], k=2)[0][:, 1]))
-        min_corr = 1.5 * spacing
-
         prior = self._prior_at(initial, c, T_enu_slam, cfg)
         if prior is not None:
             sig_prior = float(np.sqrt(np.linalg.eigvalsh(prior[3:5, 3:5])[-1]))
             if sig_prior > MAX_PRIOR_SIGMA_M:
                 return Registration(None, f"prior too vague: horizontal 1-σ {sig_prior:.1f} m at the crop centre > "
-                                          f"{MAX_PRIOR_SIGMA_M} m (ICP's convergence basin)", n_source=len(src), n_target=len(tgt))
+                                          f"{MAX_PRIOR_SIGMA_M} m (ICP's convergence basin)", n_source=len(src))
+        # The model within max_correspondence_m beyond the source's square, so border points find their matches.
+        crop = self._crops.get(c, half + cfg.max_correspondence_m)
+        n_tgt = int(np.sum(np.all(np.abs(crop.points[:, :2] - c[:2]) <= half, axis=1)))
+        if n_tgt < cfg.min_points:
+            return Registration(None, f"GIS crop holds only {n_tgt} points (outside the model?)", n_target=n_tgt)
+        # Correspondence distances never drop below the model's own point spacing (a sparse
+        # model would otherwise lose true correspondences and report a low fitness).
+        min_corr = 1.5 * crop.spacing_m(c, half)
+
         free = TILT_HELD_DOF if prior is not None else ALL_DOF
-        icp = _icp(src, tgt, tgt_n, tree, Sim3.identity(), cfg, min_corr, free)
+        icp = _evaluate(src, crop, c, _icp(src, crop, c, Sim3.identity(), cfg, min_corr, free), cfg, min_corr)
         reason = self._gate(icp, cfg, free)
         used_fpfh = False
         if reason and cfg.fpfh_fallback:
-            guess = _fpfh_guess(src, tgt, tgt_n, cfg)
+            guess = _fpfh_guess(src, crop, c, half, cfg)
             if guess is not None:
-                icp2 = _icp(src, tgt, tgt_n, tree, guess, cfg, min_corr, ALL_DOF)
+                icp2 = _evaluate(src, crop, c, _icp(src, crop, c, guess, cfg, min_corr, ALL_DOF), cfg, min_corr)
                 reason2 = self._gate(icp2, cfg, ALL_DOF)
                 if not reason2 or icp2.fitness > icp.fitness:
                     icp, reason, used_fpfh, free = icp2, reason2, True, ALL_DOF
@@ -195,8 +279,8 @@ class FineTuner:
             for dist_m, ang_deg in MULTISTARTS:
                 ang = np.radians(ang_deg)
                 g = compose(Sim3(1.0, np.eye(3), dist_m * np.array([np.cos(ang), np.sin(ang), 0.0])), icp.T)
-                other = _icp(src, tgt, tgt_n, tree, g, cfg, min_corr, free)
-                spread = max(spread, float(np.linalg.norm(other.T.t - icp.T.t)))
+                other = _icp(src, crop, c, g, cfg, min_corr, free)
+                spread = max(spread, float(np.linalg.norm(other.t - icp.T.t)))
 
         z = _vec(icp.T)[list(free)]
         R = _measurement_cov(icp, cfg, free, spread)
@@ -209,10 +293,13 @@ class FineTuner:
         sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
-                      n_target=len(tgt), used_fpfh=used_fpfh, nis=nis, spread_m=spread,
+                      n_target=n_tgt, used_fpfh=used_fpfh, nis=nis, spread_m=spread,
                       sigma_mad_m=icp.sigma_mad_m, n_dof=len(free))
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
+        if not reason and spread > MULTISTART_M + cfg.max_jump_m:
+            reason = (f"degenerate geometry: restarts {MULTISTART_M} m away slid {spread:.1f} m from the optimum "
+                      f"(> {MULTISTART_M} + max_jump_m {cfg.max_jump_m} m): no basin (e.g. a single facade)")
         if not reason and prior is None and spread > STANDALONE_MAX_SPREAD_M:
             reason = (f"ambiguous optimum: restarts {MULTISTART_M} m away converge {spread:.2f} m apart "
                       f"(> {STANDALONE_MAX_SPREAD_M} m) and there is no prior to decide")
@@ -359,48 +446,87 @@ def _update(z: np.ndarray, M: np.ndarray, R: np.ndarray, P: np.ndarray, correlat
     return x, 0.5 * (Pp + Pp.T), nis
 
 
-def _icp(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, tree: cKDTree, T0: Sim3, cfg: AlignmentConfig,
-         min_corr_m: float, free: tuple[int, ...] = ALL_DOF) -> _Icp:
-    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in centred coordinates over the
-    DoF in ``free`` (indices of [rot, trans, log-scale]; the others stay at T0's)."""
-    T = T0
+def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float,
+         free: tuple[int, ...] = ALL_DOF) -> Sim3:
+    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in coordinates centred at c over
+    the DoF in ``free`` (indices of [rot, trans, log-scale]; the others stay at T0's).
+
+    Each iteration: one cKDTree query (C) for the correspondences, then one Gauss–Newton step of
+    digital-twin Eq. 2 with the Jacobian rows A_j of Eq. 9 extended by the scale column n_j·a_j. A level ends when a step moves
+    no cloud point more than ICP_STEP_TOL_M (10× below the σ floor)."""
+    s, R, t = T0.scale, T0.R, T0.t
     f = list(free)
+    reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
         k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
-            x = T.apply(src)
-            d, j = tree.query(x, distance_upper_bound=max_d)
-            ok = np.isfinite(d)
-            if ok.sum() < 7:
+            x, n, r = _matches(src, crop, c, s, R, t, max_d)
+            if len(r) < 7:
                 break
-            x, n, b = x[ok], tgt_n[j[ok]], tgt[j[ok]]
-            r = np.einsum("ij,ij->i", n, x - b)
             w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
-            J = np.hstack([np.cross(x, n), n, np.einsum("ij,ij->i", n, x)[:, None]])[:, f]  # Eq. 9 + scale column
-            H = (J * w[:, None]).T @ J
-            g = (J * w[:, None]).T @ r
+            J = _jacobian(x, n)[:, f]
+            Jw = J * w[:, None]
+            H = Jw.T @ J
             delta = np.zeros(7)
             try:
-                delta[f] = -np.linalg.solve(H + 1e-6 * np.trace(H) / len(f) * np.eye(len(f)), g)
+                delta[f] = -np.linalg.solve(H + 1e-6 * np.trace(H) / len(f) * np.eye(len(f)), Jw.T @ r)
             except np.linalg.LinAlgError:
                 break
-            T = compose(_sim3(delta), T)
-            if np.linalg.norm(delta[:3]) < 1e-6 and np.linalg.norm(delta[3:6]) < 1e-5 and abs(delta[6]) < 1e-6:
+            Rd, sd = _rotvec_matrix(delta[:3]), float(np.exp(delta[6]))
+            s, R, t = sd * s, Rd @ R, sd * Rd @ t + delta[3:6]  # T ← δ ∘ T
+            step_m = np.linalg.norm(delta[3:6]) + (np.linalg.norm(delta[:3]) + abs(delta[6])) * s * reach_m
+            if step_m < ICP_STEP_TOL_M:
                 break
-    # Final inliers, RMSE, robust scale and the Hessian of Eq. 8–9 (unweighted, inliers only).
-    x = T.apply(src)
-    d, j = tree.query(x, distance_upper_bound=max(cfg.max_correspondence_m / 4, min_corr_m))
-    ok = np.isfinite(d)
-    n, b, x = tgt_n[j[ok]], tgt[j[ok]], x[ok]
-    r = np.einsum("ij,ij->i", n, x - b)
+    return Sim3(s, R, t)
+
+
+def _evaluate(src: np.ndarray, crop: _Crop, c: np.ndarray, T: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> _Icp:
+    """Final inliers, RMSE, robust scale and the Hessian of Eq. 8–9 (unweighted, inliers only) at T."""
+    max_d = max(cfg.max_correspondence_m / 4, min_corr_m)
+    x, n, r = _matches(src, crop, c, T.scale, T.R, T.t, max_d)
     inl = np.abs(r) < cfg.inlier_distance_m
     fitness = float(inl.sum()) / len(src)
     rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
     mad = float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("inf")
-    J = np.hstack([np.cross(x[inl], n[inl]), n[inl], np.einsum("ij,ij->i", n[inl], x[inl])[:, None]])
+    J = _jacobian(x[inl], n[inl])
     cen = x[inl].mean(axis=0) if inl.any() else np.zeros(3)
     return _Icp(T, fitness, rmse, J.T @ J, int(inl.sum()), cen, mad)
+
+
+def _matches(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
+             max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Moved source points x = s·R·p + t (centred at c) whose nearest model point b lies within
+    max_d (one cKDTree query), the model normals n there and the point-to-plane residuals
+    r = n·(x − b) of digital-twin Eq. 2."""
+    x = s * src @ R.T + t
+    d, j = crop.tree.query(x + c, distance_upper_bound=max_d)
+    ok = np.isfinite(d)
+    x, j = x[ok], j[ok]
+    n = crop.normals[j]
+    return x, n, np.einsum("ij,ij->i", n, x - (crop.points[j] - c))
+
+
+def _jacobian(x: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Rows [ (x × n)ᵀ, nᵀ, n·x ] over [rot, trans, log-scale]: Eq. 9's A_j (sign folded into the
+    step) extended by the scale column. Cross product written out (np.cross costs more than the
+    arithmetic at these sizes)."""
+    J = np.empty((len(x), 7))
+    J[:, 0] = x[:, 1] * n[:, 2] - x[:, 2] * n[:, 1]
+    J[:, 1] = x[:, 2] * n[:, 0] - x[:, 0] * n[:, 2]
+    J[:, 2] = x[:, 0] * n[:, 1] - x[:, 1] * n[:, 0]
+    J[:, 3:6] = n
+    J[:, 6] = np.einsum("ij,ij->i", n, x)
+    return J
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: exp([w]×) = I + sin θ K + (1 − cos θ) K², K = [w/θ]×, θ = |w|."""
+    theta = float(np.sqrt(w @ w))
+    if theta < 1e-12:
+        return np.eye(3) + _skew(w)
+    K = _skew(w / theta)
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
@@ -422,19 +548,36 @@ def _voxel(p: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.asarray(pcd.voxel_down_sample(voxel_m).points)
 
 
-def _voxel_with_normals(p: np.ndarray, n: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-    pcd.normals = o3d.utility.Vector3dVector(n)
-    d = pcd.voxel_down_sample(voxel_m)
-    nn = np.asarray(d.normals)
-    norm = np.linalg.norm(nn, axis=1, keepdims=True)
-    keep = norm[:, 0] > 0.5  # averaged opposite normals (thin walls) are unreliable: drop
-    return np.asarray(d.points)[keep], nn[keep] / norm[keep]
+def _subsample(p: np.ndarray, n_max: int) -> np.ndarray:
+    """At most n_max of the points, a fixed-seed random subset (repeatable registrations)."""
+    if len(p) <= n_max:
+        return p
+    return p[np.sort(np.random.default_rng(0).choice(len(p), n_max, replace=False))]
 
 
-def _fpfh_guess(src: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, cfg: AlignmentConfig) -> Sim3 | None:
+def _voxel_global(p: np.ndarray, n: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean point and unit mean normal per voxel of the global grid (edges at multiples of voxel_m,
+    so a crop made of whole tiles voxelises every tile the same way); voxels whose normals cancel
+    (|mean| ≤ 0.5: both faces of a thin wall) are dropped. Sorted by voxel (deterministic order)."""
+    if len(p) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    v = np.floor(p / voxel_m).astype(np.int64)
+    v -= v.min(axis=0)
+    span = v.max(axis=0) + 1
+    key = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    mean = lambda a: np.stack([np.bincount(inv, a[:, k], len(counts)) for k in range(3)], 1) / counts[:, None]  # noqa: E731
+    pts, nrm = mean(p), mean(n)
+    norm = np.linalg.norm(nrm, axis=1)
+    keep = norm > 0.5
+    return pts[keep], nrm[keep] / norm[keep, None]
+
+
+def _fpfh_guess(src: np.ndarray, crop: _Crop, c: np.ndarray, half_m: float, cfg: AlignmentConfig) -> Sim3 | None:
     """Global registration from FPFH features + RANSAC (open3d), rigid (scale is close already)."""
     reg = o3d.pipelines.registration
+    inner = np.all(np.abs(crop.points[:, :2] - c[:2]) <= half_m, axis=1)
+    tgt, tgt_n = crop.points[inner] - c, crop.normals[inner]
     voxel = max(cfg.target_voxel_m, cfg.source_voxel_m) * 2
     s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)).voxel_down_sample(voxel)
     t = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
