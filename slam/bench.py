@@ -347,9 +347,11 @@ def _status_mb(key: str) -> float:
 
 
 def run_memory(lap: LapFrames, config: SlamConfig, minutes: float, sample_every: int = 300,
-               realtime: bool = True, progress: bool = True) -> tuple[list[MemorySample], RunResult]:
+               realtime: bool = True, lockstep: bool = False, progress: bool = True) -> tuple[list[MemorySample], RunResult]:
     """Fly the lap out and back for ``minutes`` of flight time and sample memory every
-    ``sample_every`` frames. Map updates are not polled, as in the pipeline (companion.pipeline)."""
+    ``sample_every`` frames. Map updates are not polled, as in the pipeline (companion.pipeline).
+    lockstep: after each keyframe wait until local mapping (and its BA) is done, as on a machine
+    where mapping keeps up with the camera (on 2 shared cores it does not, and the map resets in turns)."""
     proc = psutil.Process()
     n = int(round(minutes * 60 * lap.fps))
     order = out_and_back(lap.n_frames, n)
@@ -376,6 +378,8 @@ def run_memory(lap: LapFrames, config: SlamConfig, minutes: float, sample_every:
             states.append(pose.state)
             if pose.state.has_pose:
                 est[k] = pose.T_slam_cam[:3, 3]
+            if lockstep:
+                s.wait_mapping()  # returns at once when mapping is idle
             if k % sample_every == 0:
                 sample(k, s)
             if realtime:
@@ -425,8 +429,9 @@ def memory_main(a: argparse.Namespace) -> None:
           f"(cache {lap.root})", flush=True)
     if a.render_only:
         return
-    cfg = SlamConfig(feature_backend=a.backend, torch_device=a.device)
-    samples, run = run_memory(lap, cfg, a.minutes, a.sample_every, realtime=not a.no_realtime)
+    overrides = dict(kv.split("=", 1) for kv in a.set)
+    cfg = SlamConfig(**{**SlamConfig().model_dump(), "feature_backend": a.backend, "torch_device": a.device, **overrides})
+    samples, run = run_memory(lap, cfg, a.minutes, a.sample_every, realtime=not a.no_realtime, lockstep=a.lockstep)
     f = memory_summary(samples)
     rmse, length, pct = run.ate()
     print(f"\nRSS MB: start {f['rss_start_mb']:.0f}, at 2 min {f['rss_2min_mb']:.0f}, end {f['rss_end_mb']:.0f}, "
@@ -436,7 +441,8 @@ def memory_main(a: argparse.Namespace) -> None:
           f"loops closed {len(run.loops)}, ATE after Sim(3) {rmse:.2f} m over {length:.0f} m = {pct:.2f} %; "
           f"config max_keyframes {cfg.max_keyframes}, loop_anchor_every {cfg.loop_anchor_every}, "
           f"max_loop_anchors {cfg.max_loop_anchors}, max_trajectory_keyframes {cfg.max_trajectory_keyframes}")
-    print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; {'real-time' if not a.no_realtime else 'as fast as possible'}")
+    print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; {'real-time' if not a.no_realtime else 'as fast as possible'}"
+          f"{', lockstep with local mapping' if a.lockstep else ''}; overrides {overrides or 'none'}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -458,6 +464,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fps", type=float, default=10.0, help="--memory: camera frame rate")
     ap.add_argument("--sample-every", type=int, default=300, help="--memory: frames between samples")
     ap.add_argument("--render-only", action="store_true", help="--memory: render the lap into --cache-dir and stop")
+    ap.add_argument("--lockstep", action="store_true", help="--memory: wait for local mapping after each keyframe")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="--memory: SlamConfig override, e.g. --set max_keyframes=200 (repeatable)")
     a = ap.parse_args(argv)
     if a.memory:
         memory_main(a)
