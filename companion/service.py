@@ -70,7 +70,7 @@ def run_service(cfg: AppConfig) -> int:
         log.error("gis.model is not set: the service needs a GIS model file (any supported format)")
         return 2
     try:
-        model = load_model(cfg.gis.model.expanduser(), sample_spacing_m=cfg.gis.sample_spacing_m)
+        model = load_model(cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m)
     except (GisFormatError, OSError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
         log.error("cannot load the GIS model (gis.model): %s", e)
         return 2
