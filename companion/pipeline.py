@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import logging
 import math
-import queue
+import multiprocessing as mp
 import threading
 import time
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
 
@@ -313,51 +315,84 @@ class BootstrapCollector:
             return None
 
 
+_TUNER: FineTuner | None = None  # the fine-tuning process's own FineTuner (inherited through fork)
+
+
+def _adopt_tuner(tuner: FineTuner) -> None:
+    global _TUNER
+    _TUNER = tuner
+
+
+def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float]:
+    t0 = time.perf_counter()
+    reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
+                          map_id=initial.map_id)
+    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3
+
+
 class FineTuneWorker:
-    """Runs FineTuner.refine in a background thread; at most one registration queued (latest wins)."""
+    """Runs FineTuner.register in its own process; at most one registration in flight (a new one
+    is refused while busy).
+
+    A process, not a thread: the registration is numpy/scipy with many small steps, so in a thread
+    it competed with tracking and mapping for the GIL (measured: 85 ms alone, ~420 ms wall inside
+    the pipeline on 2 cores) and lengthened tracking's frames. The worker is forked once with the
+    tuner (GIS model and its crop cache stay in the child, nothing is re-sent per job); a job sends
+    the SLAM points and the prior alignment, and gets back the alignment or the rejection reason.
+    ``wall_ms`` is each registration's wall time inside the worker. If the worker dies, that job
+    reports why and the next submit starts a new worker.
+    """
 
     def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None]):
         self._tuner = tuner
         self._on_result = on_result
-        self._jobs: queue.Queue = queue.Queue(maxsize=1)
-        self._stop = threading.Event()
         self.busy = threading.Event()
         self.wall_ms: list[float] = []
-        self._thread = threading.Thread(target=self._run, name="finetune", daemon=True)
-        self._thread.start()
+        self._lock = threading.Lock()
+        self._pool: ProcessPoolExecutor | None = self._start()
+
+    def _start(self) -> ProcessPoolExecutor:
+        # fork, as slam.ba.BAWorker: spawn would re-import __main__ and re-send the GIS model
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"),
+                                   initializer=_adopt_tuner, initargs=(self._tuner,))
+        pool.submit(time.perf_counter)  # fork now, not at the first registration
+        return pool
 
     def submit(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray, t_s: float) -> bool:
-        if self.busy.is_set():
-            return False
-        try:
-            self._jobs.put_nowait((points_slam, initial, center_slam, t_s))
-        except queue.Full:
-            return False
-        self.busy.set()
+        with self._lock:
+            if self.busy.is_set():
+                return False
+            if self._pool is None:
+                self._pool = self._start()
+            self.busy.set()
+            fut = self._pool.submit(_register_in_worker, points_slam, initial, center_slam, t_s)
+        fut.add_done_callback(self._done)
         return True
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                points, initial, center, t_s = self._jobs.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            t0 = time.perf_counter()
-            try:
-                reg = self._tuner.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter,
-                                           center_slam=center, map_id=initial.map_id)
-                alignment, reason = reg.alignment, reg.reason
-            except Exception as e:  # a failed registration must not kill the pipeline
-                log.exception("fine-tuning failed")
-                alignment, reason = None, f"exception: {e}"
-            ms = (time.perf_counter() - t0) * 1e3
-            self.wall_ms.append(ms)
+    def _done(self, fut: Future) -> None:
+        try:
+            alignment, reason, ms = fut.result()
+        except CancelledError:
             self.busy.clear()
-            self._on_result(alignment, reason, ms)
+            return
+        except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restart it next time
+            log.error("fine-tuning worker died: %s", e)
+            with self._lock:
+                self._pool = None
+            alignment, reason, ms = None, f"fine-tuning worker died: {e}", float("nan")
+        except Exception as e:  # a failed registration must not kill the pipeline
+            log.error("fine-tuning failed: %s: %s", type(e).__name__, e)
+            alignment, reason, ms = None, f"exception: {type(e).__name__}: {e}", float("nan")
+        if math.isfinite(ms):
+            self.wall_ms.append(ms)
+        self.busy.clear()
+        self._on_result(alignment, reason, ms)
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 class Localizer:
