@@ -492,7 +492,6 @@ def main(argv: list[str] | None = None) -> None:
         print(report(r), flush=True)
         results.append(r)
     if a.ablation:
-        b = results[0]
         print("\nablation (vs baseline):")
         for r in results:
             print(f"  {r.name:9s} track mean {r.tracking_ms.mean():6.1f} ms  P99 {_p(r.tracking_ms, 99):6.1f} ms  "

@@ -15,7 +15,7 @@ import numpy as np
 
 from slam.ba import BAProblem, BAResult, BAWorker
 from slam.config import SlamConfig
-from slam.geometry import camera_center, correct_pose_by_sim3, ransac_sim3, triangulate
+from slam.geometry import correct_pose_by_sim3, ransac_sim3, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import match_bf
 from slam.place import PlaceIndex
