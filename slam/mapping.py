@@ -288,8 +288,11 @@ class LocalMapper:
             if len(pids) < 10:
                 return None
             win = set(kf_ids)
-            fixed_ids = sorted({k for p in pids for k in m.points[p].obs if k not in win and k in m.keyframes})
-            fixed_ids = fixed_ids[-max_fixed:]
+            border = {k for p in pids for k in m.points[p].obs if k not in win and k in m.keyframes}
+            # hold the border keyframes closest (in keyframe order) to the window; a local window's
+            # border is all older, so these are the newest; a loop window with two ends (RLC, Alg. 1
+            # line 1) gets anchors at both ends instead of a free-floating old end
+            fixed_ids = sorted(sorted(border, key=lambda k: (min(abs(k - w) for w in win), -k))[:max_fixed])
             all_ids = fixed_ids + kf_ids
             fixed = np.array([k in fixed_ids for k in all_ids])
             if fixed.sum() < 2:  # gauge: monocular BA needs >= 2 held poses (7 DoF)
