@@ -36,6 +36,7 @@ from gis.globalizer import Globalizer
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from mavlink_bridge.monitor import h_acc_of
 from mavlink_bridge.types import GnssSample, GpsFixType
+from slam.geometry import gravity_cam_from_roll_pitch
 from slam.types import AttitudePrior, Frame, SlamPose
 
 log = logging.getLogger(__name__)
@@ -60,6 +61,14 @@ def attitude_prior(att) -> AttitudePrior | None:
     if att is None:
         return None
     return AttitudePrior(att.t_s, att.roll_rad, att.pitch_rad, att.yaw_rad, getattr(att, "baro_alt_m", None))
+
+
+def with_gravity(prior: AttitudePrior | None, R_cam_body: np.ndarray) -> AttitudePrior | None:
+    """The prior with its gravity direction in the camera frame (g_cam = R_cam_body·R_ned_bodyᵀ·(0,0,1)),
+    which is what SLAM uses (slam.use_attitude_prior); the camera mount stays on this side."""
+    if prior is None or prior.gravity_cam is not None:
+        return prior
+    return replace(prior, gravity_cam=gravity_cam_from_roll_pitch(prior.roll_rad, prior.pitch_rad, R_cam_body))
 
 
 @dataclass(frozen=True)
@@ -466,7 +475,7 @@ class Localizer:
         self._accept(alignment, f"{reason}, {wall_ms:.0f} ms")
 
     def process(self, item: PipelineInput) -> FrameRecord:
-        pose = self.slam.track(item.frame, item.prior)
+        pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
         self._last_pose = pose
         with self._lock:
             alignment = self.alignment

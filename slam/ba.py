@@ -26,11 +26,20 @@ class BAProblem:
     max_iterations: int = 10
     huber_px: float = 2.0
     sigma_px: float = 1.0
+    g_cam: np.ndarray | None = None  # (P,3) unit gravity ("down") per camera, NaN rows: no prior
+    gravity_sigma_rad: np.ndarray | None = None  # (P,) 1-sigma angles of g_cam
+
+    @property
+    def levelled_anchors(self) -> np.ndarray:
+        """(P,) fixed cameras with a gravity prior: only their centres are held (see bundle_adjust)."""
+        if self.g_cam is None:
+            return np.zeros(len(self.fixed), bool)
+        return self.fixed & np.isfinite(self.g_cam).all(axis=1)
 
 
 @dataclass
 class BAResult:
-    T_cam_slam: np.ndarray  # (P,4,4)
+    T_cam_slam: np.ndarray  # (P,4,4) (fixed ones unchanged, levelled anchors re-oriented)
     points_slam: np.ndarray  # (M,3)
     residual_px: np.ndarray  # (O,) reprojection error after optimization
     initial_error: float
@@ -54,7 +63,14 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
     """Solve the BA problem. Fixed poses are not variables: their observations become
     TriangulationFactors (camera known, only the point moves). Measured on loop-closing BAs
     (30-50 keyframes, 10-16k observations): the same optimum as hard NonlinearEquality constraints
-    on the fixed poses, 4-6x faster (those made every LM step slow)."""
+    on the fixed poses, 4-6x faster (those made every LM step slow).
+
+    Except in a gravity-aligned map (g_cam given): there a fixed camera with a gravity prior (a
+    levelled anchor) is a variable that keeps its centre (a tight PoseTranslationPrior3D) while its
+    orientation follows its gravity factor and the points. The gauge of a gravity-aligned
+    monocular map is yaw, translation and scale, which two held centres fix; holding the anchors'
+    full poses would also hold whatever tilt they carry, and the gravity factors of the free
+    cameras would then bend the map instead of levelling it."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -67,10 +83,15 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     poses_wc = [gtsam.Pose3(np.linalg.inv(T)) for T in p.T_cam_slam]  # gtsam wants camera-to-world
-    fixed_cams = {i: gtsam.PinholeCameraCal3_S2(pose, K) for i, pose in enumerate(poses_wc) if p.fixed[i]}
+    levelled = p.levelled_anchors
+    center_model = gtsam.noiseModel.Isotropic.Sigma(3, ANCHOR_CENTER_SIGMA * _scene_depth(p))
+    fixed_cams = {i: gtsam.PinholeCameraCal3_S2(pose, K) for i, pose in enumerate(poses_wc)
+                  if p.fixed[i] and not levelled[i]}
     for i, pose in enumerate(poses_wc):
         if i not in fixed_cams:
             values.insert(X(i), pose)
+        if levelled[i]:
+            graph.add(gtsam.PoseTranslationPrior3D(X(i), pose.translation(), center_model))
     for j, pt in enumerate(p.points_slam):
         values.insert(L(j), np.asarray(pt, float))
     for i, j, uv in zip(p.obs_pose.tolist(), p.obs_point.tolist(), p.obs_uv_px):
@@ -78,6 +99,8 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
             graph.add(gtsam.TriangulationFactorCal3_S2(fixed_cams[i], uv, noise, L(j)))
         else:
             graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, noise, X(i), L(j), K))
+    for f in gravity_factors(p):
+        graph.add(f)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(p.max_iterations)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -88,6 +111,39 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
     P_out = np.array([res.atPoint3(L(j)) for j in range(len(p.points_slam))]).reshape(-1, 3)
     resid = reprojection_errors(p.K, T_out, P_out, p.obs_pose, p.obs_point, p.obs_uv_px)
     return BAResult(T_out, P_out, resid, e0, graph.error(res), (time.perf_counter() - t0) * 1e3)
+
+
+#: 1-sigma of a levelled anchor's centre, as a fraction of the median camera-to-point distance
+ANCHOR_CENTER_SIGMA = 1e-5
+
+
+def _scene_depth(p: BAProblem) -> float:
+    """Median camera-to-point distance over the observations (the map's length unit is arbitrary)."""
+    c = np.array([-T[:3, :3].T @ T[:3, 3] for T in p.T_cam_slam])
+    d = np.linalg.norm(p.points_slam[p.obs_point] - c[p.obs_pose], axis=1) if len(p.obs_point) else np.ones(1)
+    return float(np.median(d)) if np.isfinite(d).any() else 1.0
+
+
+def gravity_factors(p: BAProblem) -> list:
+    """One gravity-direction factor per camera with a prior (free cameras and levelled anchors;
+    the SLAM frame is gravity-aligned, z up). gtsam 4.3 AttitudeFactorPose3(key, nRef, model,
+    bMeasured) has the error e = nRef.error(nRb·bMeasured) ∈ R² (gtsam/navigation/AttitudeFactor.h;
+    the argument order changed in 4.3): with the pose nRb = R_slam_cam, nRef = DOWN_SLAM and
+    bMeasured = g_cam it is zero when the camera's measured gravity, rotated into the SLAM frame,
+    points straight down (checked by tests/test_slam_gravity.py)."""
+    import gtsam
+    from gtsam.symbol_shorthand import X
+
+    from slam.geometry import DOWN_SLAM
+
+    if p.g_cam is None:
+        return []
+    n_ref = gtsam.Unit3(DOWN_SLAM)
+    out = []
+    for i in np.flatnonzero(np.isfinite(p.g_cam).all(axis=1)).tolist():
+        model = gtsam.noiseModel.Isotropic.Sigma(2, float(p.gravity_sigma_rad[i]))
+        out.append(gtsam.AttitudeFactorPose3(X(i), n_ref, model, gtsam.Unit3(np.asarray(p.g_cam[i], float))))
+    return out
 
 
 def _warm() -> bool:

@@ -2,6 +2,7 @@
 
     python -m slam.bench --scenario nominal --frames 600 [--ablation] [--force-loss 300:15]
     python -m slam.bench --memory --minutes 10 [--fps 10] [--sample-every 300]
+    python -m slam.bench --scenario loop --frames 600 --camera-fps 10 --attitude-prior both --repeat 3
 
 Prints per-frame tracking latency (wall and tracking-thread CPU, mean/P99), tracking ratio,
 ATE after Sim(3) alignment as % of path length, local-mapping and loop-closing times, map size
@@ -24,10 +25,10 @@ import numpy as np
 import psutil
 
 from slam.config import SlamConfig
-from slam.geometry import umeyama_sim3
+from slam.geometry import DOWN_SLAM, gravity_cam_from_roll_pitch, sim3_scale, umeyama_sim3
 from slam.mapping import MapMemory
 from slam.system import SlamSystem
-from slam.types import CameraModel, Frame, TrackingState
+from slam.types import AttitudePrior, CameraModel, Frame, TrackingState
 
 
 @dataclass
@@ -38,27 +39,45 @@ class Sequence:
     T_enu_cam: np.ndarray  # (N,4,4) truth
     t_s: np.ndarray
     fps: float
+    priors: list[AttitudePrior] | None = None  # the simulated autopilot's attitude at each frame
+
+
+def simulated_priors(sc, t_s: np.ndarray) -> list[AttitudePrior]:
+    """The simulator's autopilot attitude (companion/sim/autopilot_signals.py: AHRS bias + noise)
+    at each frame time — the newest sample at or before it, as the pipeline gets it — with its
+    gravity direction in the camera from the scenario's camera mount (as companion.pipeline does)."""
+    samples = sc.attitude_samples
+    t_att = np.array([a.t_s for a in samples])
+    R_cam_body = np.linalg.inv(sc.T_body_cam)[:3, :3]
+    out = []
+    for t in t_s:
+        a = samples[max(0, int(np.searchsorted(t_att, t + 1e-9)) - 1)]
+        out.append(AttitudePrior(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.baro_alt_m,
+                                 gravity_cam_from_roll_pitch(a.roll_rad, a.pitch_rad, R_cam_body)))
+    return out
 
 
 def render_sequence(scenario: str = "nominal", n_frames: int = 300, seed: int = 0,
-                    cache_dir: str | None = None, start: int = 0) -> Sequence:
-    """Render frames [start, start+n_frames) of a simulator scenario (optionally cached as .npz)."""
+                    cache_dir: str | None = None, start: int = 0, fps: float | None = None) -> Sequence:
+    """Render frames [start, start+n_frames) of a simulator scenario (optionally cached as .npz).
+    fps: camera frame rate instead of the scenario's (the same flight sampled more sparsely)."""
     import cv2
 
     from companion.sim import make_scenario  # the benchmark, not slam/ itself, uses the simulator
 
-    path = os.path.join(cache_dir, f"slam_{scenario}_{seed}_{start}_{n_frames}.npz") if cache_dir else None
-    sc = make_scenario(scenario, seed=seed, n_frames=start + n_frames)
+    tag = f"_{fps:g}fps" if fps else ""
+    path = os.path.join(cache_dir, f"slam_{scenario}_{seed}_{start}_{n_frames}{tag}.npz") if cache_dir else None
+    sc = make_scenario(scenario, seed=seed, n_frames=start + n_frames, **({"fps": fps} if fps else {}))
     if path and os.path.exists(path):
         d = np.load(path)
-        return Sequence(scenario, sc.camera, d["images"], d["T"], d["t"], sc.fps)
+        return Sequence(scenario, sc.camera, d["images"], d["T"], d["t"], sc.fps, simulated_priors(sc, d["t"]))
     imgs, T, t = [], [], []
     for st in sc.steps(start=start):
         im = st.frame.image
         imgs.append(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im)
         T.append(st.truth.T_enu_cam)
         t.append(st.frame.t_s)
-    seq = Sequence(scenario, sc.camera, np.array(imgs), np.array(T), np.array(t), sc.fps)
+    seq = Sequence(scenario, sc.camera, np.array(imgs), np.array(T), np.array(t), sc.fps, simulated_priors(sc, np.array(t)))
     if path:
         os.makedirs(cache_dir, exist_ok=True)
         np.savez(path, images=seq.images, T=seq.T_enu_cam, t=seq.t_s)
@@ -82,6 +101,8 @@ class RunResult:
     n_points: int
     rss_mb: list[float] = field(default_factory=list)
     dropped: int = 0  # frames skipped because tracking was more than a frame period late
+    kf_T_slam_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # final keyframe poses
+    kf_T_enu_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # their truth
 
     @property
     def tracking_ratio(self) -> float:
@@ -98,6 +119,41 @@ class RunResult:
         return ate_after_sim3(self.est_centers, self.true_centers)
 
 
+def tilt_errors_deg(T_slam_cam: np.ndarray, T_enu_cam: np.ndarray) -> dict[str, float]:
+    """How far the keyframes' gravity direction is off (the map's tilt), in degrees.
+
+    The SLAM frame is put on ENU by the rotation that best fits all keyframe orientations
+    (chordal L2 mean of R_enu_cam·R_slam_camᵀ, as a GNSS + attitude bootstrap does); a keyframe's
+    tilt error is then the angle between its true gravity direction in the camera
+    (R_enu_camᵀ·down) and the estimated one ((R_enu_slam·R_slam_cam)ᵀ·down). ``rms``/``max``: over
+    keyframes (how much the map's tilt varies along the flight). ``slam_z``: angle between the
+    SLAM frame's z axis and true up (meaningful with the attitude prior, which makes z up).
+    """
+    if len(T_slam_cam) < 2:
+        return {"rms": float("nan"), "max": float("nan"), "slam_z": float("nan")}
+    R_est, R_true = T_slam_cam[:, :3, :3], T_enu_cam[:, :3, :3]
+    U, _, Vt = np.linalg.svd(np.einsum("kij,klj->il", R_true, R_est))  # Σ R_true R_estᵀ
+    R_enu_slam = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    down_enu = np.array([0.0, 0.0, -1.0])
+    g_true = np.einsum("kji,j->ki", R_true, down_enu)
+    g_est = np.einsum("kji,j->ki", np.einsum("ij,kjl->kil", R_enu_slam, R_est), down_enu)
+    err = np.degrees(np.arccos(np.clip(np.einsum("ki,ki->k", g_true, g_est), -1, 1)))
+    slam_z = np.degrees(np.arccos(np.clip((R_enu_slam @ -DOWN_SLAM) @ -down_enu, -1, 1)))
+    return {"rms": float(np.sqrt((err**2).mean())), "max": float(err.max()), "slam_z": float(slam_z)}
+
+
+def scale_ratio_end_to_start(est: np.ndarray, truth: np.ndarray) -> float:
+    """Monocular scale of the last quarter of the tracked trajectory over that of the first (the
+    scale of a Sim(3) fit of each quarter to truth; path lengths would count pose jitter while the
+    vehicle is slow): 1 = kept, << 1 = collapsed."""
+    if len(est) < 12:
+        return float("nan")
+    q = len(est) // 4
+    s_first = sim3_scale(umeyama_sim3(est[:q], truth[:q]))
+    s_last = sim3_scale(umeyama_sim3(est[-q:], truth[-q:]))
+    return s_first / s_last  # the fit's scale maps SLAM units to metres: a shrinking map has a growing one
+
+
 def ate_after_sim3(est: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
     if len(est) < 3:
         return float("nan"), 0.0, float("nan")
@@ -110,11 +166,13 @@ def ate_after_sim3(est: np.ndarray, truth: np.ndarray) -> tuple[float, float, fl
 
 def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bool = True,
                  blackout: tuple[int, int] | None = None, order: np.ndarray | None = None,
-                 drop_late: bool = False) -> RunResult:
+                 drop_late: bool = False, lockstep: bool = False) -> RunResult:
     """Feed the sequence to a SlamSystem. blackout=(first, count) replaces frames with black images
     (a forced tracking loss); ``order`` replays frame indices in a custom order (e.g. out and back).
     realtime: frames are due at the scenario's frame rate; drop_late: a frame more than one period
-    late is skipped, as a live camera source that keeps only the newest frame would."""
+    late is skipped, as a live camera source that keeps only the newest frame would. lockstep:
+    wait for local mapping after every frame (the algorithm without CPU contention; not real-time).
+    The simulated autopilot priors go with each frame when ``config.use_attitude_prior``."""
     proc = psutil.Process()
     order = np.arange(len(seq.images)) if order is None else order
     ms, cpu, states, est, tru, rss = [], [], [], [], [], []
@@ -129,8 +187,13 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
             img = seq.images[i]
             if blackout and blackout[0] <= n < blackout[0] + blackout[1]:
                 img = np.zeros_like(img)
+            prior = None
+            if config.use_attitude_prior and seq.priors is not None:
+                a = seq.priors[i]
+                prior = AttitudePrior(n / seq.fps + (a.t_s - seq.t_s[i]), a.roll_rad, a.pitch_rad, a.yaw_rad,
+                                      a.baro_alt_m, a.gravity_cam)
             c0 = time.thread_time()
-            pose = s.track(Frame(img, n / seq.fps, n))
+            pose = s.track(Frame(img, n / seq.fps, n), prior)
             cpu.append((time.thread_time() - c0) * 1e3)
             ms.append(pose.tracking_ms)
             states.append(pose.state)
@@ -139,15 +202,19 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
                 tru.append(seq.T_enu_cam[i][:3, 3])
             if n % 100 == 0:
                 rss.append(proc.memory_info().rss / 2**20)
-            if realtime:
+            if lockstep:
+                s.wait_mapping()
+            elif realtime:
                 time.sleep(max(0.0, due + 1 / seq.fps - time.perf_counter()))
             s.poll_map_updates()
         s.wait_mapping()
         st = s.mapper.stats
+        kf_t, kf_T = s.keyframe_poses()
+        kf_truth = seq.T_enu_cam[order[np.rint(kf_t * seq.fps).astype(int)]]
         return RunResult(name, np.array(ms), np.array(cpu), states, np.array(est).reshape(-1, 3),
                          np.array(tru).reshape(-1, 3), s.reset_counter, list(st.local_mapping_ms),
                          list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms), list(st.loops),
-                         len(s.mapper.map.points), rss, dropped)
+                         len(s.mapper.map.points), rss, dropped, kf_T, kf_truth)
 
 
 def inject_drifted_revisit(system: SlamSystem, source_kf_ids: list[int], S_drift: np.ndarray) -> list:
@@ -231,6 +298,7 @@ def _p(x, q) -> float:
 
 def report(r: RunResult) -> str:
     rmse, length, pct = r.ate()
+    tilt = tilt_errors_deg(r.kf_T_slam_cam, r.kf_T_enu_cam)
     lines = [
         f"[{r.name}] frames {len(r.states)}  tracked {100 * r.tracking_ratio:.1f} % (after init {100 * r.ratio_after_init:.1f} %)"
         f"  resets {r.reset_counter}  relocalized {sum(s == TrackingState.RELOCALIZED for s in r.states)}"
@@ -238,6 +306,8 @@ def report(r: RunResult) -> str:
         f"  tracking wall ms: mean {r.tracking_ms.mean():.1f}  P99 {_p(r.tracking_ms, 99):.1f}   "
         f"tracking-thread CPU ms: mean {r.tracking_cpu_ms.mean():.1f}  P99 {_p(r.tracking_cpu_ms, 99):.1f}",
         f"  ATE after Sim(3): {rmse:.3f} m over {length:.1f} m path = {pct:.2f} %",
+        f"  keyframe tilt error (deg, orientation-aligned): RMS {tilt['rms']:.2f}  max {tilt['max']:.2f}; "
+        f"SLAM z vs true up {tilt['slam_z']:.2f}; scale end/start {scale_ratio_end_to_start(r.est_centers, r.true_centers):.2f}",
         f"  local mapping per keyframe: thread ms mean {np.mean(r.local_mapping_ms or [np.nan]):.0f}; local BA "
         f"(async, worker process) solve ms mean {np.mean(r.local_ba_ms or [np.nan]):.0f} P99 {_p(r.local_ba_ms, 99):.0f}, "
         f"window mean {np.mean(r.ba_window or [np.nan]):.1f} kf; {len(r.local_mapping_ms)} keyframes",
@@ -452,6 +522,40 @@ def memory_main(a: argparse.Namespace) -> None:
           f"{', lockstep with local mapping' if a.lockstep else ''}; overrides {overrides or 'none'}")
 
 
+def prior_row(r: RunResult) -> dict[str, float]:
+    """The attitude-prior comparison's figures of one run."""
+    tilt = tilt_errors_deg(r.kf_T_slam_cam, r.kf_T_enu_cam)
+    return {"ate_pct": r.ate()[2], "tilt_rms_deg": tilt["rms"], "tilt_max_deg": tilt["max"], "slam_z_deg": tilt["slam_z"],
+            "tracked": r.tracking_ratio, "track_ms_mean": float(r.tracking_ms.mean()), "track_ms_p99": _p(r.tracking_ms, 99),
+            "scale_end_start": scale_ratio_end_to_start(r.est_centers, r.true_centers), "resets": r.reset_counter,
+            "loops": len(r.loops), "ba_ms_mean": float(np.mean(r.local_ba_ms or [np.nan]))}
+
+
+def prior_main(seq: Sequence, base: SlamConfig, a: argparse.Namespace) -> None:
+    """Without / with the attitude prior on the same frames, runs alternated so both see the same
+    machine load; one line per run, then mean [min, max] per configuration."""
+    modes = {"off": [False], "on": [True], "both": [False, True]}[a.attitude_prior]
+    rows: dict[bool, list[dict]] = {m: [] for m in modes}
+    for k in range(a.repeat):
+        for use in modes:
+            cfg = base.model_copy(update=dict(use_attitude_prior=use))
+            r = run_sequence(seq, cfg, f"prior {'on' if use else 'off'} #{k + 1}", realtime=not a.no_realtime,
+                             drop_late=a.drop_late, lockstep=a.lockstep)
+            print(report(r), flush=True)
+            rows[use].append(prior_row(r))
+    keys = list(rows[modes[0]][0])
+    pacing = "lockstep with local mapping" if a.lockstep else ("as fast as possible" if a.no_realtime else "real-time")
+    print(f"\n{seq.name}, {len(seq.images)} frames at {seq.fps:g} fps ({pacing}), {a.repeat} run(s) each: mean [min, max]")
+    print("| prior | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for use in modes:
+        cells = []
+        for key in keys:
+            v = np.array([row[key] for row in rows[use]], float)
+            cells.append(f"{np.nanmean(v):.3g} [{np.nanmin(v):.3g}, {np.nanmax(v):.3g}]" if np.isfinite(v).any() else "nan")
+        print(f"| {'on' if use else 'off'} | " + " | ".join(cells) + " |")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenario", default="nominal")
@@ -471,15 +575,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fps", type=float, default=10.0, help="--memory: camera frame rate")
     ap.add_argument("--sample-every", type=int, default=300, help="--memory: frames between samples")
     ap.add_argument("--render-only", action="store_true", help="--memory: render the lap into --cache-dir and stop")
-    ap.add_argument("--lockstep", action="store_true", help="--memory: wait for local mapping after each keyframe")
+    ap.add_argument("--lockstep", action="store_true", help="--memory / --attitude-prior: wait for local mapping after each keyframe (frame)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="--memory: SlamConfig override, e.g. --set max_keyframes=200 (repeatable)")
+    ap.add_argument("--camera-fps", type=float, default=None, help="render the scenario at this frame rate instead of its own")
+    ap.add_argument("--attitude-prior", choices=["off", "on", "both"], default="off",
+                    help="feed the simulated autopilot's gravity direction (slam.use_attitude_prior); both: alternate off/on runs")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per configuration (SLAM is not bit-reproducible)")
     a = ap.parse_args(argv)
     if a.memory:
         memory_main(a)
         return
     t0 = time.perf_counter()
-    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir)
+    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, fps=a.camera_fps)
     print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' in {time.perf_counter() - t0:.0f} s")
     base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
     if a.loop_ablation:
@@ -491,6 +599,9 @@ def main(argv: list[str] | None = None) -> None:
             print(f"  RLC loop-correction time change vs full: {100 * (res[1][1][0] / res[0][1][0] - 1):+.0f} %")
         return
     blackout = tuple(int(x) for x in a.force_loss.split(":")) if a.force_loss else None
+    if a.attitude_prior != "off" and not a.ablation:
+        prior_main(seq, base, a)
+        return
     runs = ablation_configs(base, with_ga=not a.no_ga) if a.ablation else [(f"{a.backend}", base)]
     results = []
     for name, cfg in runs:

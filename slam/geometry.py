@@ -48,6 +48,54 @@ def project(K: np.ndarray, T_cam_slam: np.ndarray, p_slam: np.ndarray) -> tuple[
     return uv, z
 
 
+# --- gravity (autopilot attitude prior, issue 4 §5) -----------------------------------------------
+
+#: gravity ("down") in a gravity-aligned SLAM frame: its z axis points up
+DOWN_SLAM = np.array([0.0, 0.0, -1.0])
+
+
+def gravity_cam_from_roll_pitch(roll_rad: float, pitch_rad: float, R_cam_body: np.ndarray) -> np.ndarray:
+    """Unit gravity direction ("down") in the camera frame from the body's roll and pitch in NED.
+
+    With R_ned_body = Rz(yaw)·Ry(pitch)·Rx(roll) (aerospace ZYX Euler angles), NED down d = (0,0,1)
+    is d_body = R_ned_bodyᵀ·d = Rx(roll)ᵀ·Ry(pitch)ᵀ·d, independent of yaw, i.e.
+    d_body = (−sin θ, sin φ cos θ, cos φ cos θ); then g_cam = R_cam_body · d_body.
+    """
+    sr, cr, sp, cp = np.sin(roll_rad), np.cos(roll_rad), np.sin(pitch_rad), np.cos(pitch_rad)
+    g_body = np.array([-sp, sr * cp, cr * cp])
+    g_cam = np.asarray(R_cam_body, float) @ g_body
+    return g_cam / np.linalg.norm(g_cam)
+
+
+def R_align_vectors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation R with R·a = b for unit 3-vectors a, b (Rodrigues' formula about a×b)."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])  # half turn
+        perp /= np.linalg.norm(perp)
+        return 2 * np.outer(perp, perp) - np.eye(3)
+    k = axis / s
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+
+
+def R_slam_cam_levelled(g_cam: np.ndarray) -> np.ndarray:
+    """Orientation of a camera in a gravity-aligned SLAM frame (z up, yaw arbitrary) given its
+    gravity direction: R_slam_cam·g_cam = DOWN_SLAM."""
+    return R_align_vectors(g_cam, DOWN_SLAM)
+
+
+def tilt_rad(R_slam_cam: np.ndarray, g_cam: np.ndarray) -> float:
+    """Angle between a camera's gravity direction rotated into the SLAM frame and DOWN_SLAM."""
+    d = np.asarray(R_slam_cam, float) @ (np.asarray(g_cam, float) / np.linalg.norm(g_cam))
+    return float(np.arccos(np.clip(d @ DOWN_SLAM, -1.0, 1.0)))
+
+
 # --- Sim(3) as a 4x4 matrix [[s R, t], [0, 1]] mapping points -----------------------------------
 
 def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:

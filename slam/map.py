@@ -27,6 +27,8 @@ class Keyframe:
     uv_px: np.ndarray  # (N,2) undistorted
     desc: np.ndarray  # (N,32)
     point_ids: np.ndarray  # (N,) int64, -1 where the feature has no map point
+    g_cam: np.ndarray | None = None  # (3,) unit gravity ("down") in the camera frame, autopilot prior
+    gravity_sigma_rad: float | None = None  # its 1-sigma angle
 
     @property
     def center(self) -> np.ndarray:
@@ -79,6 +81,10 @@ class SlamMap:
         self.points: dict[int, MapPoint] = {}
         self._next_kf = 0
         self._next_pt = 0
+        # z is up: the map was levelled with the autopilot's gravity at initialisation, so its
+        # keyframes may carry gravity priors for BA (a map without it, e.g. started before the
+        # first prior or loaded from disk, gets none: they would fight its arbitrary frame)
+        self.gravity_aligned = False
 
     def new_kf_id(self) -> int:
         self._next_kf += 1

@@ -99,6 +99,16 @@ class _Reset:
 _STOP = object()
 
 
+def _gravity_arrays(kfs: list[Keyframe]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(P,3) g_cam (NaN rows without a prior) and (P,) sigmas for BAProblem; (None, None) when no
+    keyframe has a gravity prior (slam.use_attitude_prior off)."""
+    if all(kf.g_cam is None for kf in kfs):
+        return None, None
+    g = np.array([kf.g_cam if kf.g_cam is not None else np.full(3, np.nan) for kf in kfs], float)
+    sigma = np.array([kf.gravity_sigma_rad if kf.g_cam is not None else np.nan for kf in kfs], float)
+    return g, sigma
+
+
 class LocalMapper:
     def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
                  reset_counter: int = 0) -> None:
@@ -306,9 +316,10 @@ class LocalMapper:
                         o_pose.append(pose_idx[k])
                         o_pt.append(pt_idx[p])
                         o_uv.append(m.keyframes[k].uv_px[f])
+            g_cam, g_sigma = _gravity_arrays([m.keyframes[k] for k in all_ids])
             prob = BAProblem(self.K, np.array([m.keyframes[k].T_cam_slam for k in all_ids]), fixed,
                              np.array([m.points[p].p_slam for p in pids]), np.array(o_pose), np.array(o_pt),
-                             np.array(o_uv), max_iterations=c.ba_iterations)
+                             np.array(o_uv), max_iterations=c.ba_iterations, g_cam=g_cam, gravity_sigma_rad=g_sigma)
         return prob, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose
 
     def _apply_ba(self, res: BAResult, job) -> None:
@@ -318,8 +329,9 @@ class LocalMapper:
         with m.lock:
             if m is not self.map:
                 return
+            levelled = job[0].levelled_anchors  # fixed by their centres only: re-oriented by BA
             for k, T in zip(all_ids, res.T_cam_slam):
-                if k in m.keyframes and not fixed[pose_idx[k]]:
+                if k in m.keyframes and (not fixed[pose_idx[k]] or levelled[pose_idx[k]]):
                     m.keyframes[k].T_cam_slam = T
             for p, X in zip(pids, res.points_slam):
                 if p in m.points:

@@ -24,7 +24,7 @@ from slam.features import make_extractor
 from slam.geometry import inv_T
 from slam.mapping import LocalMapper
 from slam.persist import LoadedMap, MapFileError, SavedMap, new_map_id, save_map_file, snapshot_map
-from slam.tracking import Tracker
+from slam.tracking import Gravity, Tracker
 from slam.types import AttitudePrior, CameraModel, Frame, MapUpdate, SlamPose, TrackingState
 
 
@@ -33,8 +33,6 @@ class SlamSystem:
                  reloc_timeout_s: float = 15.0) -> None:
         self.camera = camera
         self.config = config or SlamConfig()
-        if self.config.use_attitude_prior:
-            raise ValueError("slam.use_attitude_prior: attitude/baro priors are not implemented yet; set it to false")
         K = np.asarray(camera.K, float)
         if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"camera.K must be a 3x3 intrinsics matrix with positive focal lengths, got {K!r}")
@@ -55,8 +53,9 @@ class SlamSystem:
         self._last_seq: int | None = None
 
     def track(self, frame: Frame, prior: AttitudePrior | None = None) -> SlamPose:
-        """Track one frame (hot path). ``prior`` is accepted for the API; it is ignored while
-        ``use_attitude_prior`` is off (the only supported setting for now)."""
+        """Track one frame (hot path). ``prior``: the autopilot's attitude at the frame's capture
+        time; with ``slam.use_attitude_prior`` its ``gravity_cam`` levels a new map and enters
+        bundle adjustment (ignored otherwise, and when it has no gravity_cam)."""
         t0 = time.perf_counter()
         img = frame.image
         if img.shape[:2] != (self.camera.height_px, self.camera.width_px):
@@ -66,7 +65,7 @@ class SlamSystem:
             raise ValueError(f"frame seq must increase: got {frame.seq} after {self._last_seq}")
         self._last_seq = frame.seq
         self.tracker.shared.pending_keyframes = self.mapper.pending()
-        res = self.tracker.track(frame)
+        res = self.tracker.track(frame, self._gravity(prior))
         if res.reset_map is not None:
             self.reset_counter += 1
             self.map_id = new_map_id()
@@ -79,6 +78,16 @@ class SlamSystem:
         return SlamPose(t_s=frame.t_s, seq=frame.seq, T_slam_cam=T_slam_cam, state=res.state,
                         reset_counter=self.reset_counter, n_inliers=res.n_inliers,
                         tracking_ms=(time.perf_counter() - t0) * 1e3, map_id=self.map_id)
+
+    def _gravity(self, prior: AttitudePrior | None) -> Gravity | None:
+        if not self.config.use_attitude_prior or prior is None or prior.gravity_cam is None:
+            return None
+        g_cam = np.asarray(prior.gravity_cam, float).reshape(3)
+        n = np.linalg.norm(g_cam)
+        if not (np.isfinite(n) and n > 0):
+            return None
+        sigma = prior.gravity_sigma_rad if prior.gravity_sigma_rad is not None else np.radians(self.config.attitude_prior_sigma_deg)
+        return Gravity(g_cam / n, float(sigma))
 
     def _with_map_id(self, u: MapUpdate) -> MapUpdate:
         # local mapping knows its map by reset_counter only; the id goes with it

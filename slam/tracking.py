@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from slam.config import SlamConfig
 from slam.features import Features
-from slam.geometry import T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
+from slam.geometry import R_slam_cam_levelled, T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
 from slam.map import Keyframe, LocalMap, SlamMap
 from slam.matching import TH_LOW, match_bf, match_by_projection
 from slam.types import Frame, TrackingState
@@ -79,10 +79,19 @@ class TrackResult:
     reset_map: SlamMap | None = None
 
 
+@dataclass(frozen=True)
+class Gravity:
+    """The autopilot's gravity direction for one frame: unit "down" in the camera, 1-sigma angle."""
+
+    g_cam: np.ndarray
+    sigma_rad: float
+
+
 @dataclass
 class _Init:
     frame: Frame
     feats: Features
+    gravity: Gravity | None = None
 
 
 @dataclass
@@ -106,6 +115,7 @@ class Tracker:
     _reloc_age: int = 0
     _reloc_timeout_s: float | None = None  # set by resume(): relocalise within this much frame time or reset
     _reloc_deadline_t_s: float | None = None
+    _gravity: Gravity | None = None  # of the frame being tracked (slam.use_attitude_prior)
 
     # --- public ---------------------------------------------------------------------------------
     def resume(self, timeout_s: float) -> None:
@@ -124,7 +134,10 @@ class Tracker:
         self._reloc_map = None
         self._reloc_timeout_s, self._reloc_deadline_t_s = float(timeout_s), None
 
-    def track(self, frame: Frame) -> TrackResult:
+    def track(self, frame: Frame, gravity: Gravity | None = None) -> TrackResult:
+        """``gravity``: the autopilot's gravity direction at this frame (None: no prior); new
+        keyframes carry it to bundle adjustment and a new map is levelled with it."""
+        self._gravity = gravity
         feats = self.extract(frame.image)
         if self.state == TrackingState.INITIALIZING:
             return self._initialize(frame, feats)
@@ -155,11 +168,17 @@ class Tracker:
         if need:
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
-            kf = Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, est.T_cam_slam.copy(), feats.uv_px, feats.desc, pids)
+            kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity)
             self.frames_since_kf = 0
             self.ref_kf_points = n
             self.shared.mapping_busy = True
         return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)
+
+    def _keyframe(self, frame: Frame, T_cam_slam: np.ndarray, feats: Features, point_ids: np.ndarray,
+                  gravity: Gravity | None) -> Keyframe:
+        use = gravity is not None and self.map.gravity_aligned
+        g, sigma = (gravity.g_cam, gravity.sigma_rad) if use else (None, None)
+        return Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, T_cam_slam, feats.uv_px, feats.desc, point_ids, g, sigma)
 
     def _track_local_map(self, feats: Features, T_pred: np.ndarray) -> PoseEstimate | None:
         lm = self.shared.local_map
@@ -267,12 +286,12 @@ class Tracker:
         """Two-view monocular initialization once the reference frame has enough parallax."""
         c = self.config
         if self._init is None or len(self._init.feats) < c.init_min_matches:
-            self._init = _Init(frame, feats)
+            self._init = _Init(frame, feats, self._gravity)
             return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
         ref = self._init.feats
         pairs = match_bf(ref.desc, feats.desc, ratio=0.75, max_dist=TH_LOW + 14)
         if len(pairs) < c.init_min_matches:
-            self._init = _Init(frame, feats)  # too much changed: restart from this frame
+            self._init = _Init(frame, feats, self._gravity)  # too much changed: restart from this frame
             return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
         uv1, uv2 = ref.uv_px[pairs[:, 0]], feats.uv_px[pairs[:, 1]]
         if np.median(np.linalg.norm(uv2 - uv1, axis=1)) < c.init_min_flow_px:
@@ -286,11 +305,18 @@ class Tracker:
         T2[:3, 3] *= s
         pts = init.points_cam1[init.good] * s
         good = np.flatnonzero(init.good)
+        # the SLAM frame: the first camera's, or with its gravity prior the first camera's levelled
+        # (z up; yaw and origin those of the first camera). Only the first view's prior: the
+        # second one would come through the two-view rotation, which is degrees off at times.
+        g1 = self._init.gravity
+        T_cam1_slam = np.eye(4) if g1 is None else make_T(R_slam_cam_levelled(g1.g_cam).T, np.zeros(3))
+        T2 = T2 @ T_cam1_slam
+        pts = pts @ T_cam1_slam[:3, :3]  # p_slam = R_slam_cam1 p_cam1
         m = self.map
         with m.lock:
-            kf1 = Keyframe(m.new_kf_id(), self._init.frame.t_s, self._init.frame.seq, np.eye(4), ref.uv_px, ref.desc,
-                           np.full(len(ref), -1, np.int64))
-            kf2 = Keyframe(m.new_kf_id(), frame.t_s, frame.seq, T2, feats.uv_px, feats.desc, np.full(len(feats), -1, np.int64))
+            m.gravity_aligned = g1 is not None
+            kf1 = self._keyframe(self._init.frame, T_cam1_slam, ref, np.full(len(ref), -1, np.int64), self._init.gravity)
+            kf2 = self._keyframe(frame, T2, feats, np.full(len(feats), -1, np.int64), self._gravity)
             m.add_keyframe(kf1)
             m.add_keyframe(kf2)
             for p, i1, i2 in zip(pts, pairs[good, 0], pairs[good, 1]):

@@ -61,6 +61,10 @@ class AttitudePrior:
     """Optional autopilot prior for one frame (beyond the papers, issue 4 §5).
 
     roll/pitch/yaw of the body in NED, radians; baro_alt_m: barometric altitude (relative, metres).
+    gravity_cam: unit gravity direction ("down") in the camera frame at t_s, from roll/pitch and
+    the camera mount (slam.geometry.gravity_cam_from_roll_pitch; filled by the pipeline, which
+    knows T_body_cam). SLAM uses only this (with slam.use_attitude_prior), not the Euler angles.
+    gravity_sigma_rad: its 1-σ angle; None: slam.attitude_prior_sigma_deg.
     """
 
     t_s: float
@@ -68,6 +72,8 @@ class AttitudePrior:
     pitch_rad: float
     yaw_rad: float
     baro_alt_m: float | None = None
+    gravity_cam: np.ndarray | None = None
+    gravity_sigma_rad: float | None = None
 
 
 class TrackingState(enum.Enum):

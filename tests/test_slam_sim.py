@@ -126,3 +126,38 @@ def test_periodic_larger_ba_runs_in_the_background(cpu_run):
     assert len(r.ba_window) >= c.periodic_ba_every_keyframes
     assert max(r.ba_window) == c.periodic_ba_window
     assert min(r.ba_window) <= c.local_window
+
+
+# --- attitude (gravity) prior, issue 4 §5 ------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def prior_run(nominal):
+    """The same flight with the simulated autopilot's gravity direction (AHRS bias + noise)."""
+    return run_sequence(nominal, SlamConfig(use_attitude_prior=True), "prior")
+
+
+def _slam_frame_tilt_deg(r) -> np.ndarray:
+    """Per keyframe: angle between its true gravity direction, rotated into the SLAM frame by the
+    estimated pose, and the SLAM frame's down axis (no alignment to truth at all)."""
+    from slam.geometry import tilt_rad
+
+    down_enu = np.array([0.0, 0.0, -1.0])
+    return np.degrees([tilt_rad(T[:3, :3], Tt[:3, :3].T @ down_enu) for T, Tt in zip(r.kf_T_slam_cam, r.kf_T_enu_cam)])
+
+
+def test_attitude_prior_gives_a_gravity_aligned_map(prior_run, cpu_run):
+    """The new map is levelled at initialisation and stays level: every keyframe's true gravity
+    points along the SLAM frame's -z within the AHRS bias (0.2° per axis) plus noise."""
+    tilt = _slam_frame_tilt_deg(prior_run)
+    assert len(tilt) >= 4
+    assert tilt.max() < 1.0, tilt
+    assert _slam_frame_tilt_deg(cpu_run).min() > 10  # without the prior the SLAM frame is the first camera's
+
+
+def test_attitude_prior_agrees_with_the_vision_only_path(prior_run, cpu_run):
+    """Same tracking and accuracy as without the prior on this short flight (the prior must not
+    fight the images); the longer before/after comparison is slam.bench --attitude-prior both."""
+    assert prior_run.ratio_after_init >= 0.97 and prior_run.reset_counter == 0
+    rmse_on, rmse_off = prior_run.ate()[0], cpu_run.ate()[0]
+    assert rmse_on < 1.0 and abs(rmse_on - rmse_off) < 0.3, (rmse_on, rmse_off)
+    assert abs(len(prior_run.kf_T_slam_cam) - len(cpu_run.kf_T_slam_cam)) <= 0.3 * len(cpu_run.kf_T_slam_cam)
