@@ -16,7 +16,7 @@ class SlamConfig(BaseModel):
     local_window: int = Field(10, ge=2, le=100, description="local BA window w in keyframes (§5.2)")
     progressive_local_mapping: bool = Field(True, description="PLM: BA over w/2 inside the reliable region (§5.2, Eq. 4)")
     loop_closing: Literal["off", "full", "recursive"] = Field("recursive", description="loop correction: full-loop optimisation or recursive (§5.3, Alg. 1)")
-    use_attitude_prior: bool = Field(False, description="use the autopilot's gravity direction (AttitudePrior.gravity_cam): gravity-aligned initial map, gravity factors in every BA (off until it measurably helps)")
+    use_attitude_prior: bool = Field(False, description="use the autopilot's gravity direction (AttitudePrior.gravity_cam): gravity-aligned initial map, gravity factors in every BA. Experimental: levels the map, but measured worse ATE on nominal (scale drift), docs/BENCHMARKS.md")
     attitude_prior_sigma_deg: float = Field(1.0, gt=0, le=30, description="1-sigma of the autopilot's roll/pitch for the gravity factors when the prior carries none (AHRS: ~0.5-1 deg)")
     # tracking
     min_inliers: int = Field(25, ge=6, le=500, description="PnP inliers needed to call a frame tracked")
