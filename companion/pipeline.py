@@ -16,6 +16,7 @@ The pipeline knows no camera device, MAVLink or simulator: callers pass an itera
 """
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import multiprocessing as mp
@@ -404,6 +405,9 @@ class FineTuneWorker:
             pool.shutdown(wait=True, cancel_futures=True)
 
 
+MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
+
+
 class Localizer:
     """SLAM + alignment + globalisation for one camera; ``process`` is the per-frame hot path."""
 
@@ -420,7 +424,8 @@ class Localizer:
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
         self.alignment: Alignment | None = None
-        self.events: list[tuple[float, str]] = []  # (t_s, text): alignment timeline
+        # (t_s, text): alignment timeline, the newest MAX_EVENTS (a service runs for hours)
+        self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=MAX_EVENTS)
         self._lock = threading.Lock()
         self._frames_since_tune = 0
         self._frames_since_boot = 0
