@@ -2,7 +2,6 @@
 pose-only refinement, keyframe decisions and the tracking state machine (issue 4 §1)."""
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Callable
 
