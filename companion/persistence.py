@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,12 +122,15 @@ class MapSaver:
     """Saves the SLAM map (with its current alignment) in a background thread: every
     ``save_every_s``, soon after ``request()`` (an alignment was accepted), and once more on
     ``close()``. Never on the hot path: SlamSystem.save_map copies the map under its lock (local
-    mapping waits a few ms) and writes without it. A failed save is logged and retried next time."""
+    mapping waits a few ms) and writes without it. A failed save is logged and retried next time.
+    Nothing is written while neither the map has new keyframes nor the alignment changed (a
+    hovering or grounded vehicle does not rewrite tens of MB of flash every period)."""
 
     def __init__(self, slam, localizer, path: Path, site_id: str, save_every_s: float) -> None:
         self.slam, self.localizer, self.path, self.site_id = slam, localizer, path, site_id
         self.save_every_s = save_every_s
-        self.saves: list = []  # SavedMap of each save (sizes and times, for logs and tests)
+        self.saves: deque = deque(maxlen=100)  # SavedMap of the latest saves (sizes and times)
+        self._saved_revision: tuple | None = None  # (map revision, alignment) of the file on disk
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # one save at a time (thread vs close)
@@ -153,13 +157,21 @@ class MapSaver:
         return {"alignment": alignment_json(a, self.site_id)}
 
     def save(self):
+        """Write the map (with its alignment) unless the file on disk already holds this state;
+        returns the SavedMap, or None when nothing was written."""
         with self._lock:
             atts = self.attachments()
+            a = atts.get("alignment")
+            revision = (self.slam.map_revision(), None if a is None else (a["t_s"], a["sigma_m"]))
+            if revision == self._saved_revision:
+                return None
             try:
                 info = self.slam.save_map(self.path, atts)
             except Exception:  # disk full, permissions...: keep flying, try again next period
                 log.exception("saving the SLAM map to %s failed", self.path)
                 return None
+            if info is not None:
+                self._saved_revision = revision
         if info is not None:
             self.saves.append(info)
             log_event(log, "slam_map_saved", f"SLAM map saved to {info.path}: {info.n_keyframes} keyframes, {info.n_points} "

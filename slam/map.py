@@ -86,6 +86,11 @@ class SlamMap:
         # first prior or loaded from disk, gets none: they would fight its arbitrary frame)
         self.gravity_aligned = False
 
+    @property
+    def keyframes_created(self) -> int:
+        """Keyframes ever added to this map (a cheap "has it grown" revision)."""
+        return self._next_kf
+
     def new_kf_id(self) -> int:
         self._next_kf += 1
         return self._next_kf - 1

@@ -110,6 +110,11 @@ class SlamSystem:
         _, map_id, reset_counter = self._current
         return map_id, reset_counter
 
+    def map_revision(self) -> tuple[int, int, int]:
+        """(map_id, reset_counter, keyframes created): changes when the map grows or is replaced."""
+        slam_map, map_id, reset_counter = self._current
+        return map_id, reset_counter, slam_map.keyframes_created
+
     def save_map(self, path: Path | str, attachments: dict | None = None) -> SavedMap | None:
         """Write the current map to ``path`` atomically (slam/persist.py); None while the map has
         no keyframes yet (initialising). Safe from any thread: the map is copied under its lock

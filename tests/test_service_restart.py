@@ -191,6 +191,12 @@ def test_restore_path_saves_restores_inflates_and_falls_back(saved_map, tmp_path
     loc.restore_alignment(a0, age_s=0.0, sigma_restart_m=0.0, sigma_growth_mps=0.0)
     saver = MapSaver(loc.slam, loc, map_path(cfg), "site-A", 60.0)
     assert saver.save() is not None
+    mtime_ns = map_path(cfg).stat().st_mtime_ns
+    assert saver.save() is None and map_path(cfg).stat().st_mtime_ns == mtime_ns  # unchanged: not rewritten
+    loc.restore_alignment(a0, age_s=5.0, sigma_restart_m=0.1, sigma_growth_mps=0.0)  # a new alignment
+    assert saver.save() is not None and len(saver.saves) == 2
+    loc.restore_alignment(a0, age_s=0.0, sigma_restart_m=0.0, sigma_growth_mps=0.0)  # back to a0 for what follows
+    assert saver.save() is not None and len(saver.saves) == 3
     loc.close()
     head = load_map_file(map_path(cfg), fl.camera).header
     assert head.map_id == saved_map.map_id and head.attachments["alignment"]["site_id"] == "site-A"
