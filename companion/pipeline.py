@@ -349,8 +349,8 @@ class FineTuneWorker:
     the pipeline on 2 cores) and lengthened tracking's frames. The worker is forked once with the
     tuner (GIS model and its crop cache stay in the child, nothing is re-sent per job); a job sends
     the SLAM points and the prior alignment, and gets back the alignment or the rejection reason.
-    ``wall_ms`` is each registration's wall time inside the worker. If the worker dies, that job
-    reports why and the next submit starts a new worker.
+    ``wall_ms`` is each registration's wall time inside the worker. If the worker dies, the job in
+    flight reports why, and the next submit starts a new worker (never an exception on the hot path).
     """
 
     def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None]):
@@ -374,8 +374,15 @@ class FineTuneWorker:
                 return False
             if self._pool is None:
                 self._pool = self._start()
+            job = (_register_in_worker, points_slam, initial, center_slam, t_s)
+            try:
+                fut = self._pool.submit(*job)
+            except BrokenProcessPool:  # died while idle (e.g. killed): noticed only now
+                log.error("fine-tuning worker process had died: starting a new one")
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = self._start()
+                fut = self._pool.submit(*job)
             self.busy.set()
-            fut = self._pool.submit(_register_in_worker, points_slam, initial, center_slam, t_s)
         fut.add_done_callback(self._done)
         return True
 
@@ -388,6 +395,8 @@ class FineTuneWorker:
         except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restart it next time
             log.error("fine-tuning worker died: %s", e)
             with self._lock:
+                if self._pool is not None:
+                    self._pool.shutdown(wait=False, cancel_futures=True)
                 self._pool = None
             alignment, reason, ms = None, f"fine-tuning worker died: {e}", float("nan")
         except Exception as e:  # a failed registration must not kill the pipeline

@@ -6,13 +6,17 @@ tracking thread is never stalled by it. ``bundle_adjust`` itself is a pure funct
 """
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
 
+
+log = logging.getLogger(__name__)
 
 @dataclass
 class BAProblem:
@@ -153,16 +157,29 @@ def _warm() -> bool:
 
 
 class BAWorker:
-    """One BA worker process shared by local mapping and loop closing."""
+    """One BA worker process shared by local mapping and loop closing. If the process dies
+    (killed, out of memory) the BA in flight fails with BrokenProcessPool and the next submit
+    starts a new worker: mapping goes on, one BA is lost."""
 
     def __init__(self) -> None:
+        self._pool = self._start()
+
+    @staticmethod
+    def _start() -> ProcessPoolExecutor:
         # fork, not spawn/forkserver: those re-import the caller's __main__, which breaks scripts
         # without a __main__ guard; the child only runs gtsam on the arrays it is sent.
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"))
-        self._pool.submit(_warm)
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"))
+        pool.submit(_warm)
+        return pool
 
     def submit(self, problem: BAProblem) -> Future:
-        return self._pool.submit(bundle_adjust, problem)
+        try:
+            return self._pool.submit(bundle_adjust, problem)
+        except BrokenProcessPool:
+            log.error("bundle-adjustment worker process had died: starting a new one")
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = self._start()
+            return self._pool.submit(bundle_adjust, problem)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)

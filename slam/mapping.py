@@ -9,6 +9,7 @@ import queue
 import threading
 import time
 from collections import deque
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -264,6 +265,9 @@ class LocalMapper:
         self._pending_ba = None
         try:
             res: BAResult = fut.result()
+        except BrokenProcessPool:
+            log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
+            return
         except Exception:
             log.exception("bundle adjustment failed")
             return
@@ -281,6 +285,9 @@ class LocalMapper:
             return None
         try:
             res: BAResult = self._ba.submit(job[0]).result()
+        except BrokenProcessPool:
+            log.error("bundle-adjustment worker died during a loop-closing BA: that BA is skipped")
+            return None
         except Exception:
             log.exception("bundle adjustment failed")
             return None

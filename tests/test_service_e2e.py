@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 
 from test_companion_supervisor import NotifyListener  # tests/ is on sys.path (no package)
@@ -283,7 +284,8 @@ def _horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
 def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_mesh: Path) -> None:
     """Issue 7: `terraslam run` against the simulated autopilot bootstraps its alignment from the
     simulated flight's GNSS + attitude; when GNSS is lost it takes over, and the autopilot gets 3D
-    fixes from us that agree with the flight's truth within their reported accuracy."""
+    fixes from us that agree with the flight's truth within their reported accuracy — also after
+    its worker processes are killed mid-outage (a killed stage)."""
     from companion.sim import make_scenario
 
     t_test = time.monotonic()
@@ -318,6 +320,12 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
         feed.loss_at_s = loss_at = min(max(EARLIEST_LOSS_S, feed.flight_t() + 1.0), LATEST_LOSS_S)
         notify.wait_for(lambda: feed.flight_t() >= loss_at - 0.15, LATEST_LOSS_S + 5.0, proc)
         at_loss = sim.received()  # the last look before the first NO_FIX sample
+        # a killed stage: 1 s into the outage the service's worker processes (bundle adjustment,
+        # GIS fine-tuning) are SIGKILLed, as the kernel's OOM killer would; fixes must go on
+        notify.wait_for(lambda: feed.flight_t() >= loss_at + 1.0, 5.0, proc)
+        killed = [c.pid for c in psutil.Process(proc.pid).children(recursive=True)]
+        for pid in killed:
+            os.kill(pid, signal.SIGKILL)
         notify.wait_for(lambda: feed.flight_t() >= END_S, END_S - loss_at + 5.0, proc)
         alive_before_term = proc.poll() is None
         received = sim.received()
@@ -372,6 +380,9 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
     assert all(e_frame <= 3.0 * hacc for _, e_frame, _, hacc in err), diag
     assert "Traceback" not in log_text, diag
     assert rc == 0, diag
+    # the worker processes were killed during the outage, and bundle adjustment came back by itself
+    assert len(killed) == 2, diag
+    assert "bundle-adjustment worker process had died: starting a new one" in log_text, diag
 
 
 def _truncated_copy(src: Path, dst_dir: Path) -> Path:

@@ -122,8 +122,8 @@ def test_two_view_init_recovers_motion(planar):
 
 # --- bundle adjustment (real gtsam solve) ---------------------------------------------------------
 
-def test_bundle_adjust_recovers_poses_and_points():
-    rng = np.random.default_rng(4)
+def _ba_problem(seed: int = 4) -> tuple[BAProblem, np.ndarray]:
+    rng = np.random.default_rng(seed)
     P = rng.uniform([-20, -20, 50], [20, 20, 70], (200, 3))
     poses = np.array([make_T(rot("x", 2 * i), np.array([-3.0 * i, 0, 0])) for i in range(6)])
     o_pose, o_pt, o_uv = [], [], []
@@ -137,12 +137,49 @@ def test_bundle_adjust_recovers_poses_and_points():
         noisy[i] = make_T(rot("z", 1.0) @ poses[i][:3, :3], poses[i][:3, 3] + rng.normal(0, 0.3, 3))
     prob = BAProblem(K, noisy, np.array([True, True, False, False, False, False]),
                      P + rng.normal(0, 0.5, P.shape), np.array(o_pose), np.array(o_pt), np.vstack(o_uv))
+    return prob, poses
+
+
+def test_bundle_adjust_recovers_poses_and_points():
+    prob, poses = _ba_problem()
+    o_pt = prob.obs_point
     res = bundle_adjust(prob)
     noise_floor = 0.5 * len(o_pt) * 2 * 0.5**2  # 0.5 * sum of squared 0.5 px noise
     assert res.final_error < 1.5 * noise_floor < 0.1 * res.initial_error
     assert np.median(res.residual_px) < 1.0
     for T_est, T_true in zip(res.T_cam_slam, poses):
         assert np.linalg.norm(inv_T(T_est)[:3, 3] - inv_T(T_true)[:3, 3]) < 0.1
+
+
+def test_ba_worker_restarts_after_its_process_is_killed():
+    import os
+    import signal
+    from concurrent.futures.process import BrokenProcessPool
+
+    import psutil
+
+    from slam.ba import BAWorker
+
+    prob, _ = _ba_problem()
+    worker = BAWorker()
+    try:
+        first = worker.submit(prob).result(timeout=60)
+        (child,) = psutil.Process().children()
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(10)
+        fut = None
+        try:  # the pool notices the death at the next use: either this submit or its result fails
+            fut = worker.submit(prob)
+            fut.result(timeout=60)
+        except BrokenProcessPool:
+            pass
+        again = worker.submit(prob).result(timeout=60)  # a new worker process solves it
+        (new_child,) = psutil.Process().children()
+        assert new_child.pid != child.pid
+        assert again.final_error == pytest.approx(first.final_error, rel=1e-6)
+    finally:
+        worker.close()
+    assert not psutil.Process().children()
 
 
 # --- place recognition --------------------------------------------------------------------------
