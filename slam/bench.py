@@ -620,8 +620,8 @@ def main(argv: list[str] | None = None) -> None:
               f", ATE change {100 * (plm.ate()[0] / ga.ate()[0] - 1):+.0f} %")
         w = base.local_window
         loc = [_local_window_ms(r, w) for r in (ga, plm)]
-        print(f"  PLM on the local-window BAs only (the periodic {base.periodic_ba_window}-keyframe BAs, which PLM does "
-              f"not shorten, left out): {loc[0]:.0f} → {loc[1]:.0f} ms, {100 * (loc[1] / loc[0] - 1):+.0f} %")
+        print(f"  PLM on the local-window BAs only (the periodic BAs of up to {base.periodic_ba_window} keyframes "
+              f"left out): {loc[0]:.0f} → {loc[1]:.0f} ms, {100 * (loc[1] / loc[0] - 1):+.0f} %")
         if results[-1].loop_ms and results[-2].loop_ms:
             print(f"  RLC loop-correction time change: {100 * (np.mean(results[-1].loop_ms) / np.mean(results[-2].loop_ms) - 1):+.0f} %")
         else:

@@ -36,7 +36,7 @@ class SlamConfig(BaseModel):
     ba_iterations: int = Field(5, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
     ba_fixed_keyframes: int = Field(10, ge=0, le=100, description="most fixed border keyframes (that see the window's points) in a local BA; 0: local_window/2, at least 2. More anchors hold the scale through turns")
     periodic_ba_every_keyframes: int = Field(5, ge=0, le=1000, description="every N keyframes the background BA covers periodic_ba_window keyframes instead of the local window (0: off)")
-    periodic_ba_window: int = Field(30, ge=2, le=1000, description="keyframes optimised by the periodic larger BA")
+    periodic_ba_window: int = Field(30, ge=2, le=1000, description="keyframes optimised by the periodic larger BA (halved by PLM while the motion is inside the Eq. 4 reliable region)")
     max_reproj_px: float = Field(3.0, gt=0, le=20, description="observations above this reprojection error after BA are dropped (px)")
     max_keyframes: int = Field(400, ge=20, le=100000, description="keyframes kept whole (features, points, place-index entry); older ones are forgotten or kept as loop anchors (slam/mapping.py _forget_old)")
     loop_anchor_every: int = Field(10, ge=1, le=10000, description="every N-th keyframe leaving the max_keyframes window stays as a loop anchor (features + points + place-index entry, ~100-150 KB each)")

@@ -249,7 +249,9 @@ class LocalMapper:
         n_fixed = c.ba_fixed_keyframes or max(2, w // 2)
         self._n_local_ba += 1
         if c.periodic_ba_every_keyframes and self._n_local_ba % c.periodic_ba_every_keyframes == 0:
-            win = max(win, c.periodic_ba_window)  # occasional larger window, still in the worker process
+            # occasional larger window (still in the worker process); PLM halves it as well while
+            # the motion is reliable (Eq. 4), so straight stretches do not pay for the turns
+            win = max(win, c.periodic_ba_window if win >= w else c.periodic_ba_window // 2)
         job = self._build_ba(ids[-win:], max_fixed=n_fixed)
         if job is not None:
             self.stats.ba_window.append(win)
