@@ -567,8 +567,7 @@ class Localizer:
 
 def inflate_alignment(a: Alignment, add_sigma_m: float) -> Alignment:
     """``a`` with an isotropic 1-σ ``add_sigma_m`` (metres) added to its position uncertainty."""
-    w, V = np.linalg.eigh(a.information_6x6)
-    cov6 = (V / np.maximum(w, 1e-12 * max(w[-1], 1e-12))) @ V.T  # as the Globalizer inverts it
+    cov6 = a.covariance_6x6()
     cov6[3:, 3:] += add_sigma_m**2 * np.eye(3)
     return replace(a, information_6x6=np.linalg.inv(cov6), sigma_m=float(math.hypot(a.sigma_m, add_sigma_m)))
 

@@ -55,8 +55,7 @@ class Globalizer:
         c_ecef = T.apply(a.center_slam) if a.center_slam is not None else T.t
         lat, lon, _ = ecef_to_geodetic(c_ecef)
         R_ecef_enuC = LocalFrame(float(lat), float(lon)).R_ecef_enu
-        w, V = np.linalg.eigh(a.information_6x6)
-        cov6 = (V / np.maximum(w, 1e-12 * max(w[-1], 1e-12))) @ V.T
+        cov6 = a.covariance_6x6()
         with self._lock:
             self._alignment = a
             self._cov_center = (c_ecef, R_ecef_enuC, cov6)

@@ -48,6 +48,12 @@ class Alignment:
     center_slam: np.ndarray | None = None
     scale_sigma: float = 0.0
 
+    def covariance_6x6(self) -> np.ndarray:
+        """information_6x6 inverted, eigenvalues floored at 1e-12 of the largest (a direction the
+        data do not constrain gets a huge, finite variance instead of a failed inverse)."""
+        w, V = np.linalg.eigh(self.information_6x6)
+        return (V / np.maximum(w, 1e-12 * max(w[-1], 1e-12))) @ V.T
+
 
 @dataclass(frozen=True)
 class GlobalFix:
