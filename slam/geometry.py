@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def inv_T(T: np.ndarray) -> np.ndarray:
@@ -68,20 +69,10 @@ def gravity_cam_from_roll_pitch(roll_rad: float, pitch_rad: float, R_cam_body: n
 
 
 def R_align_vectors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation R with R·a = b for unit 3-vectors a, b (Rodrigues' formula about a×b)."""
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(a @ b)
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])  # half turn
-        perp /= np.linalg.norm(perp)
-        return 2 * np.outer(perp, perp) - np.eye(3)
-    k = axis / s
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+    """The smallest rotation R with R·a = b for 3-vectors a, b (scipy's align_vectors with one pair:
+    the minimum-angle rotation, a half turn when they are opposite)."""
+    R, _ = Rotation.align_vectors(np.asarray(b, float)[None], np.asarray(a, float)[None])
+    return R.as_matrix()
 
 
 def R_slam_cam_levelled(g_cam: np.ndarray) -> np.ndarray:
