@@ -19,13 +19,13 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import psutil
 
 from slam.config import SlamConfig
-from slam.geometry import DOWN_SLAM, gravity_cam_from_roll_pitch, sim3_scale, umeyama_sim3
+from slam.geometry import DOWN_SLAM, sim3_scale, umeyama_sim3
 from slam.mapping import MapMemory
 from slam.system import SlamSystem
 from slam.types import AttitudePrior, CameraModel, Frame, TrackingState
@@ -45,16 +45,15 @@ class Sequence:
 def simulated_priors(sc, t_s: np.ndarray) -> list[AttitudePrior]:
     """The simulator's autopilot attitude (companion/sim/autopilot_signals.py: AHRS bias + noise)
     at each frame time — the newest sample at or before it, as the pipeline gets it — with its
-    gravity direction in the camera from the scenario's camera mount (as companion.pipeline does)."""
+    gravity direction in the camera from the scenario's camera mount (companion.pipeline's own
+    attitude_prior + with_gravity)."""
+    from companion.pipeline import attitude_prior, with_gravity  # the benchmark, not slam/, uses the pipeline
+
     samples = sc.attitude_samples
     t_att = np.array([a.t_s for a in samples])
     R_cam_body = np.linalg.inv(sc.T_body_cam)[:3, :3]
-    out = []
-    for t in t_s:
-        a = samples[max(0, int(np.searchsorted(t_att, t + 1e-9)) - 1)]
-        out.append(AttitudePrior(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.baro_alt_m,
-                                 gravity_cam_from_roll_pitch(a.roll_rad, a.pitch_rad, R_cam_body)))
-    return out
+    return [with_gravity(attitude_prior(samples[max(0, int(np.searchsorted(t_att, t + 1e-9)) - 1)]), R_cam_body)
+            for t in t_s]
 
 
 def render_sequence(scenario: str = "nominal", n_frames: int = 300, seed: int = 0,
@@ -190,8 +189,7 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
             prior = None
             if config.use_attitude_prior and seq.priors is not None:
                 a = seq.priors[i]
-                prior = AttitudePrior(n / seq.fps + (a.t_s - seq.t_s[i]), a.roll_rad, a.pitch_rad, a.yaw_rad,
-                                      a.baro_alt_m, a.gravity_cam)
+                prior = replace(a, t_s=n / seq.fps + (a.t_s - seq.t_s[i]))
             c0 = time.thread_time()
             pose = s.track(Frame(img, n / seq.fps, n), prior)
             cpu.append((time.thread_time() - c0) * 1e3)
@@ -350,8 +348,6 @@ class LapFrames:
 def _lap_scenario(scenario: str, seed: int, fps: float):
     """``scenario``'s loop flown exactly once: it starts and ends at rest, so an out-and-back
     replay of it is a continuous flight of any length."""
-    from dataclasses import replace
-
     from companion.sim.scenario import make_scenario, scenario_spec
 
     spec = scenario_spec(scenario, fps=fps)
