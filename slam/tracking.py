@@ -126,7 +126,7 @@ class Tracker:
     _correction_gen: int = 0
     _reloc_map: LocalMap | None = None
     _reloc_age: int = 0
-    _reloc_placed: bool = False  # the relocalisation map holds keyframes found by place recognition
+    _reloc_queried: bool = False  # the relocalisation map was built with a place query of a usable frame
     _reloc_timeout_s: float | None = None  # set by resume(): relocalise within this much frame time or reset
     _reloc_deadline_t_s: float | None = None
     _gravity: Gravity | None = None  # of the frame being tracked (slam.use_attitude_prior)
@@ -246,7 +246,7 @@ class Tracker:
     def _relocalize(self, frame: Frame, feats: Features) -> TrackResult:
         """Match against the points of the recent keyframes and of those the place index finds most
         like this frame (brute force, no pose prior) + PnP. The set is rebuilt every 15 lost frames,
-        and at once when the last one had no place candidates (e.g. built from a black frame)."""
+        and at once when the last one could not query the place index (e.g. built on a black frame)."""
         self.lost_frames += 1
         c = self.config
         if self._reloc_timeout_s is not None:  # resumed in a loaded map: a time budget
@@ -259,12 +259,12 @@ class Tracker:
             return self._reset(frame, feats)
         place = self.shared.place[1] if self.shared.place is not None and self.shared.place[0] is self.map else None
         if (self._reloc_map is None or self._reloc_age >= 15
-                or (not self._reloc_placed and place is not None and len(feats) >= c.min_inliers)):
+                or (not self._reloc_queried and place is not None and len(feats) >= c.min_inliers)):
             cands = place.query(feats.desc, top=c.reloc_place_candidates) if place is not None else []
             with self.map.lock:
                 ids = reloc_keyframes(self.map.kf_ids(), [p.kf_id for p in cands], c.reloc_keyframes)
                 self._reloc_map = self.map.local_map(ids, -1)
-            self._reloc_age, self._reloc_placed = 0, bool(cands)
+            self._reloc_age, self._reloc_queried = 0, place is not None and len(feats) >= c.min_inliers
         self._reloc_age += 1
         lm = self._reloc_map
         if len(feats) >= c.min_inliers and len(lm.point_ids) >= c.min_inliers:

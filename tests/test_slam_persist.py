@@ -148,9 +148,11 @@ def test_restart_relocalises_in_the_old_map_frame(saved_map: Saved) -> None:
     assert len(errs_m) >= len(tracked) - 1
     # The relocalised pose is where the original run was. The reference moves too: the original run
     # keeps refining its map after the save, and a new keyframe's BA moves a monocular map by up to a
-    # few metres at 80 m range in either run (measured: first frame 0.03-0.94 m, later up to 7 m).
-    # A relocalisation in the wrong place would be tens of metres off; a fresh map has another id.
-    assert errs_m[0] < 1.5 and np.median(errs_m) < 3.0, errs_m
+    # few metres at 80 m range in either run (measured: first frame 0.03-0.94 m, later up to 7 m; a
+    # 3.3-4.4 m step a few frames after the restart in most runs, so the median over 10 frames lands
+    # on either side of 3 m). A relocalisation in the wrong place would be tens of metres off; a
+    # fresh map has another id.
+    assert errs_m[0] < 1.5 and np.median(errs_m) < 5.0 and max(errs_m) < 10.0, errs_m
 
 
 def test_relocalisation_timeout_falls_back_to_a_fresh_map(saved_map: Saved) -> None:
