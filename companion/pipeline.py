@@ -333,11 +333,12 @@ def _adopt_tuner(tuner: FineTuner) -> None:
     _TUNER = tuner
 
 
-def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float]:
-    t0 = time.perf_counter()
+def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float, float]:
+    """(alignment or None, reason, wall ms, CPU ms of the worker process) of one registration."""
+    t0, c0 = time.perf_counter(), time.process_time()
     reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
                           map_id=initial.map_id)
-    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3
+    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
 class FineTuneWorker:
@@ -349,7 +350,8 @@ class FineTuneWorker:
     the pipeline on 2 cores) and lengthened tracking's frames. The worker is forked once with the
     tuner (GIS model and its crop cache stay in the child, nothing is re-sent per job); a job sends
     the SLAM points and the prior alignment, and gets back the alignment or the rejection reason.
-    ``wall_ms`` is each registration's wall time inside the worker. If the worker dies, the job in
+    ``wall_ms`` is each registration's wall time inside the worker, ``cpu_ms`` the CPU time it used
+    (on a loaded 2-core board the two differ by the time the worker waited for a core). If the worker dies, the job in
     flight reports why, and the next submit starts a new worker (never an exception on the hot path).
     """
 
@@ -357,6 +359,7 @@ class FineTuneWorker:
         self._on_result = on_result
         self.busy = threading.Event()
         self.wall_ms: list[float] = []
+        self.cpu_ms: list[float] = []
         self._lock = threading.Lock()
         self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
@@ -371,18 +374,19 @@ class FineTuneWorker:
 
     def _done(self, fut: Future) -> None:
         try:
-            alignment, reason, ms = fut.result()
+            alignment, reason, ms, cpu_ms = fut.result()
         except CancelledError:
             self.busy.clear()
             return
         except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restarted at the next submit
             log.error("fine-tuning worker died: %s", e)
-            alignment, reason, ms = None, f"fine-tuning worker died: {e}", float("nan")
+            alignment, reason, ms, cpu_ms = None, f"fine-tuning worker died: {e}", float("nan"), float("nan")
         except Exception as e:  # a failed registration must not kill the pipeline
             log.error("fine-tuning failed: %s: %s", type(e).__name__, e)
-            alignment, reason, ms = None, f"exception: {type(e).__name__}: {e}", float("nan")
+            alignment, reason, ms, cpu_ms = None, f"exception: {type(e).__name__}: {e}", float("nan"), float("nan")
         if math.isfinite(ms):
             self.wall_ms.append(ms)
+            self.cpu_ms.append(cpu_ms)
         self.busy.clear()
         self._on_result(alignment, reason, ms)
 
