@@ -48,7 +48,8 @@ class BAResult:
     residual_px: np.ndarray  # (O,) reprojection error after optimization
     initial_error: float
     final_error: float
-    solve_ms: float
+    solve_ms: float  # wall clock in the worker (includes waiting for a CPU on a busy machine)
+    solve_cpu_ms: float = float("nan")  # CPU time of the worker process for this BA (it runs nothing else)
 
 
 def reprojection_errors(K: np.ndarray, T: np.ndarray, P: np.ndarray, obs_pose: np.ndarray,
@@ -78,10 +79,11 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
 
     Keys: pose i is key i, point j is key P + j (see _pose_key/_point_key). The projection factors
     of each free camera go in with one gtsam.utilities.insertProjectionFactors call instead of one
-    Python call per observation."""
+    Python call per observation. Levenberg-Marquardt stops at max_iterations or when an iteration
+    lowers the cost by less than LM_RELATIVE_DECREASE (see there)."""
     import gtsam
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     p = problem
     n_poses = len(p.T_cam_slam)
     K = gtsam.Cal3_S2(p.K[0, 0], p.K[1, 1], 0.0, p.K[0, 2], p.K[1, 2])
@@ -118,6 +120,7 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
         graph.add(f)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(p.max_iterations)
+    params.setRelativeErrorTol(LM_RELATIVE_DECREASE)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     e0 = opt.error()
     res = opt.optimize()
@@ -125,7 +128,8 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
                       for i in range(n_poses)])
     P_out = np.array([res.atPoint3(_point_key(n_poses, j)) for j in range(len(p.points_slam))]).reshape(-1, 3)
     resid = reprojection_errors(p.K, T_out, P_out, p.obs_pose, p.obs_point, p.obs_uv_px)
-    return BAResult(T_out, P_out, resid, e0, opt.error(), (time.perf_counter() - t0) * 1e3)
+    return BAResult(T_out, P_out, resid, e0, opt.error(), (time.perf_counter() - t0) * 1e3,
+                    (time.process_time() - c0) * 1e3)
 
 
 def _pose_key(i):
@@ -134,6 +138,13 @@ def _pose_key(i):
 
 def _point_key(n_poses: int, j):
     return n_poses + j
+
+
+#: Levenberg-Marquardt stops when an iteration lowers the (robust) cost by less than this fraction.
+#: gtsam's default, 1e-5, let most local BAs run a third and fourth iteration that moved the cost
+#: by < 1e-4 (measured on 34 local BAs of the nominal run: the cost after the 2nd iteration equals
+#: the final one to 4 digits); each iteration is a full linearisation and elimination.
+LM_RELATIVE_DECREASE = 1e-3
 
 
 #: 1-sigma of a levelled anchor's centre, as a fraction of the median camera-to-point distance
