@@ -41,6 +41,7 @@ class MappingStats:
 
     local_mapping_ms: deque = field(default_factory=_history)  # whole keyframe processing
     local_ba_ms: deque = field(default_factory=_history)
+    local_ba_cpu_ms: deque = field(default_factory=_history)  # CPU time of the same BAs (BAResult.solve_cpu_ms)
     ba_window: deque = field(default_factory=_history)
     loop_ms: deque = field(default_factory=_history)  # loop correction (BA part), per closed loop
     loops: deque = field(default_factory=_history)  # (old kf id, current kf id)
@@ -278,6 +279,7 @@ class LocalMapper:
             return
         self._apply_ba(res, job)
         self.stats.local_ba_ms.append(res.solve_ms)
+        self.stats.local_ba_cpu_ms.append(res.solve_cpu_ms)
         with self.map.lock:
             ids = self.map.kf_ids()
         if ids:
