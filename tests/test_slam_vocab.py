@@ -84,3 +84,58 @@ def test_trained_words_separate_places_and_score_by_l1(tmp_path):
                                                             for c in range(15, 20)])), v.bow(images[7])
     assert a[1].sum() == pytest.approx(1.0) and l1_score(a, a) == pytest.approx(1.0)
     assert l1_score(a, a_again) > 0.5 > 0.05 > l1_score(a, b)
+
+
+def test_inverted_file_scores_equal_pairwise_l1_scores():
+    from slam.place import PlaceIndex
+
+    rng = np.random.default_rng(4)
+    base = rng.integers(0, 256, (400, 32), dtype=np.uint8)
+    # keyframes sharing parts of one scene (overlapping slices) plus unrelated ones
+    descs = [base[40 * i:40 * i + 160] for i in range(6)] + [rng.integers(0, 256, (160, 32), dtype=np.uint8)
+                                                           for _ in range(4)]
+    idx = PlaceIndex()
+    for k, d in enumerate(descs):
+        idx.add(100 + k, d)
+    idx.remove([103])
+    v = idx.vocab
+    query = base[100:260]
+    got = {c.kf_id: c.score for c in idx.query(query, top=20)}
+    want = {100 + k: l1_score(v.bow(query), v.bow(d)) for k, d in enumerate(descs) if k != 3}
+    want = {k: s for k, s in want.items() if s > 0}
+    assert got.keys() == want.keys() and all(got[k] == pytest.approx(want[k], abs=1e-6) for k in want)
+    # ranked by overlap with the query (slice 100:260): 102 (140 of 160), 101 and 104 (100), 100 and 105 (60)
+    assert max(got, key=got.get) == 102 and got[102] > got[101] > got[100] and got[104] > got[105]
+    assert max(got.get(k, 0.0) for k in range(106, 110)) < 0.05  # unrelated keyframes
+
+
+def test_place_index_queries_while_another_thread_adds_and_removes():
+    import threading
+
+    from slam.place import PlaceIndex
+
+    rng = np.random.default_rng(6)
+    descs = [rng.integers(0, 256, (200, 32), dtype=np.uint8) for _ in range(60)]
+    idx, errors, done = PlaceIndex(), [], threading.Event()
+
+    def mapper():
+        try:
+            for k, d in enumerate(descs):
+                idx.add(k, d)
+                if k >= 10:
+                    idx.remove([k - 10])  # a sliding window of 10 held keyframes
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+        finally:
+            done.set()
+
+    t = threading.Thread(target=mapper)
+    t.start()
+    seen = 0
+    while not done.is_set():
+        for c in idx.query(descs[min(seen, 59)], top=3):
+            assert 0 < c.score <= 1 + 1e-6 and 0 <= c.kf_id < 60
+        seen += 1
+    t.join()
+    assert not errors and len(idx) == 10
+    assert idx.query(descs[59])[0].kf_id == 59 and all(c.kf_id >= 50 for c in idx.query(descs[20], top=10))
