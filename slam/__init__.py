@@ -14,6 +14,8 @@ Layout (one job per module):
   mapping.py    background thread: triangulation, culling, local BA (PLM), loop closing (full/RLC)
   ba.py         gtsam bundle adjustment, run in a worker process (gtsam holds the GIL)
   plm.py        Eq. 4 reliable region, PLM window, Algorithm 1 control flow
-  place.py      place recognition: incremental binary-descriptor index (nothing downloaded)
+  place.py      place recognition: bag of binary words, inverted file, L1 score (nothing downloaded)
+  vocab.py      the ORB vocabulary (tree, tf-idf), its file slam/data/orb_vocab.npz; vocab_train.py trains it
+  place_eval.py `python -m slam.place_eval bench|recall`: place-recognition timings and recognition figures
   bench.py      `python -m slam.bench` on the simulator's scenarios
 """

@@ -442,9 +442,9 @@ class LocalMapper:
             shared = {cand.kf_id: len(own & set(self.map.keyframes[cand.kf_id].point_ids.tolist()))
                       for cand in cands if cand.kf_id in self.map.keyframes}
         for cand in cands[:2]:
-            if cand.votes < c.loop_min_votes:
+            if cand.score < c.loop_min_score:
                 break
-            log.debug("loop candidate %d votes %d shared %d", cand.kf_id, cand.votes, shared.get(cand.kf_id, 0))
+            log.debug("loop candidate %d score %.3f shared %d", cand.kf_id, cand.score, shared.get(cand.kf_id, 0))
             if shared.get(cand.kf_id, 0) >= c.loop_min_inliers // 2:
                 continue  # already connected through common map points: nothing to close
             S = self._verify(kf, cand.kf_id)

@@ -196,7 +196,7 @@ def test_place_index_finds_the_revisited_place():
     M = cv2.getRotationMatrix2D((256, 256), 8, 1.05)
     query = ex(cv2.warpAffine(imgs[0], M, (512, 512))).desc
     top = idx.query(query)
-    assert top[0].kf_id == 0 and top[0].votes > 3 * max([c.votes for c in top[1:]] + [1])
+    assert top[0].kf_id == 0 and top[0].score > 3 * max([c.score for c in top[1:]], default=0.0)
     assert all(c.kf_id != 0 for c in idx.query(query, exclude_after_kf_id=-1))
 
 

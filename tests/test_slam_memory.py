@@ -170,15 +170,18 @@ def test_slam_system_close_leaves_no_worker_process_or_thread():
     assert _slam_threads() - threads_before == set()
 
 
-def test_place_index_ignores_removed_entries_before_the_matcher_is_rebuilt():
+def test_place_index_drops_removed_entries():
     from slam.place import PlaceIndex
 
     rng = np.random.default_rng(3)
     descs = [rng.integers(0, 256, (300, 32), dtype=np.uint8) for _ in range(20)]
-    idx = PlaceIndex()
+    idx, without_7 = PlaceIndex(), PlaceIndex()
     for k, d in enumerate(descs):
         idx.add(k, d)
-    idx.remove([7])  # 1 of 20: below the 10 % rebuild threshold, the matcher still holds it
-    assert len(idx) == 19 and idx.nbytes() == 19 * 300 * 32
+        if k != 7:
+            without_7.add(k, d)
+    assert idx.query(descs[7])[0].kf_id == 7
+    idx.remove([7])
+    assert len(idx) == 19 and 0 < idx.nbytes() == without_7.nbytes() < 300 * 32 * 19
     assert all(c.kf_id != 7 for c in idx.query(descs[7]))
     assert idx.query(descs[8])[0].kf_id == 8
