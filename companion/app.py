@@ -58,6 +58,7 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,
+                     finetune_min_parallax_deg=cfg.alignment.finetune_min_parallax_deg,
                      initial_alignment=initial_alignment,
                      bootstrap=BootstrapCollector(T_body_cam=T_body_cam) if cfg.alignment.bootstrap_from_gnss
                      else BootstrapCollector(min_pairs=10**9))

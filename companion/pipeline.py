@@ -403,12 +403,13 @@ class Localizer:
     def __init__(self, slam, tuner: FineTuner | None, globalizer: Globalizer, finetune_every_frames: int = 200,
                  finetune_every_frames_denied: int = 50,
                  initial_alignment: Alignment | None = None, bootstrap: BootstrapCollector | None = None,
-                 min_points_for_finetune: int = 200):
+                 min_points_for_finetune: int = 200, finetune_min_parallax_deg: float = 0.0):
         self.slam = slam
         self.globalizer = globalizer
         self.every = finetune_every_frames
         self.every_denied = finetune_every_frames_denied
         self.min_points = min_points_for_finetune
+        self.min_parallax_deg = finetune_min_parallax_deg
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
@@ -517,8 +518,11 @@ class Localizer:
             if alignment is not None and self.worker is not None and self._frames_since_tune >= (
                     self.every if item.gnss_trusted else self.every_denied):
                 snapshot = self.slam.map_points()
-                if len(snapshot.points_slam) >= self.min_points and self.worker.submit(
-                    snapshot.points_slam, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s
+                points = snapshot.points_slam
+                if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
+                    points = points[snapshot.parallax_deg >= self.min_parallax_deg]
+                if len(points) >= self.min_points and self.worker.submit(
+                    points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s
                 ):
                     self._frames_since_tune = 0
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)

@@ -116,6 +116,9 @@ class MapUpdate:
     keyframe_t_s / keyframe_centers_slam: (K,) times and (K, 3) camera centres of the keyframes
     in the current local window. reset_counter matches SlamPose.reset_counter of the map it
     describes; ``full`` is True when this update replaces all points (e.g. after a loop closure).
+    parallax_deg: (N,) angle between the rays to each point from its first and last observing
+    keyframes (a proxy for its depth accuracy; 0 when one keyframe sees it), in full snapshots
+    (``SlamSystem.map_points``) only, else None.
     """
 
     t_s: float
@@ -127,3 +130,4 @@ class MapUpdate:
     reset_counter: int
     full: bool = False
     map_id: int = 0
+    parallax_deg: np.ndarray | None = None

@@ -239,3 +239,22 @@ def test_reliable_region_with_uneven_keyframe_times_reduces_to_eq4():
     p = np.c_[t, np.zeros(5), np.zeros(5)]
     assert not reliable_region(p).contains([14.0, 0, 0])
     assert reliable_region(p, t, 14.0).contains([14.0, 0, 0])
+
+
+# --- point parallax (MapUpdate.parallax_deg, what fine-tuning filters on) --------------------------
+
+def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays():
+    from slam.map import Keyframe, SlamMap
+    from slam.mapping import point_parallax_deg
+
+    m = SlamMap()
+    for x_m in (0.0, 5.0, 10.0):  # three cameras on a line, 10 m apart at the ends, looking down (+z)
+        T_cam_slam = make_T(np.eye(3), -np.array([x_m, 0.0, 0.0]))
+        m.add_keyframe(Keyframe(m.new_kf_id(), x_m, int(x_m), T_cam_slam, np.zeros((2, 2)),
+                                np.zeros((2, 32), np.uint8), np.full(2, -1, np.int64)))
+    both = m.add_point(np.array([5.0, 0.0, 10.0]), np.zeros(32), {0: 0, 1: 0, 2: 0})  # 10 m below the middle
+    one = m.add_point(np.array([0.0, 0.0, 50.0]), np.zeros(32), {0: 1})               # one observation
+    par = point_parallax_deg(m, [both, one])
+    # rays from x=0 and x=10 to (5, 0, 10): each 26.57° off the vertical, 53.13° apart
+    assert par[0] == pytest.approx(2 * np.degrees(np.arctan(0.5)), abs=1e-9)
+    assert par[1] == 0.0
