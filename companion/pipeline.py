@@ -394,6 +394,7 @@ class FineTuneWorker:
         self._proc.close()
 
 
+RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
 
@@ -515,16 +516,19 @@ class Localizer:
                     self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
                     alignment = boot
             self._frames_since_tune += 1
-            if alignment is not None and self.worker is not None and self._frames_since_tune >= (
-                    self.every if item.gnss_trusted else self.every_denied):
+            every = self.every if item.gnss_trusted else self.every_denied
+            if (alignment is not None and self.worker is not None and not self.worker.busy.is_set()
+                    and self._frames_since_tune >= every):
                 snapshot = self.slam.map_points()
                 points = snapshot.points_slam
                 if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
                     points = points[snapshot.parallax_deg >= self.min_parallax_deg]
                 if len(points) >= self.min_points and self.worker.submit(
-                    points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s
-                ):
+                        points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s):
                     self._frames_since_tune = 0
+                else:  # too few well-triangulated points: retry soon, not every frame (a
+                    # snapshot of a big map costs tens of ms on this, the tracking, thread)
+                    self._frames_since_tune = every - RETRY_FRAMES
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 

@@ -119,11 +119,12 @@ def point_parallax_deg(m: SlamMap, pids: list[int]) -> np.ndarray:
     if not pids:
         return np.zeros(0)
     P = np.array([m.points[p].p_slam for p in pids]).reshape(-1, 3)
+    centers = {k: kf.center for k, kf in m.keyframes.items()}
     A, B = P.copy(), P.copy()  # a point without two observing keyframes: zero-length rays → 0°
     for k, p in enumerate(pids):
-        obs = [i for i in m.points[p].obs if i in m.keyframes]
+        obs = [i for i in m.points[p].obs if i in centers]
         if len(obs) >= 2:
-            A[k], B[k] = m.keyframes[min(obs)].center, m.keyframes[max(obs)].center
+            A[k], B[k] = centers[min(obs)], centers[max(obs)]
     ra, rb = P - A, P - B
     na, nb = np.linalg.norm(ra, axis=1), np.linalg.norm(rb, axis=1)
     ok = (na > 0) & (nb > 0)
