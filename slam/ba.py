@@ -6,7 +6,6 @@ tracking thread is never stalled by it. ``bundle_adjust`` itself is a pure funct
 """
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass
 
@@ -14,8 +13,6 @@ import numpy as np
 
 from slam.worker import ForkedWorker
 
-
-log = logging.getLogger(__name__)
 
 @dataclass
 class BAProblem:
