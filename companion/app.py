@@ -75,7 +75,8 @@ class RunLog:
     switch_events: list[tuple[float, str]] = field(default_factory=list)
     alignment_events: list[tuple[float, str]] = field(default_factory=list)
     autopilot_err_m: list[tuple[float, float, str]] = field(default_factory=list)  # (t, horiz. error, source)
-    finetune_ms: list[float] = field(default_factory=list)
+    finetune_ms: list[float] = field(default_factory=list)      # wall time of each registration
+    finetune_cpu_ms: list[float] = field(default_factory=list)  # CPU time the worker used for it
     takeover_t_s: float | None = None
 
 
@@ -99,6 +100,7 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "frame_latency_ms": stats(np.array(run.wall_track_ms)),
         "camera_to_wire_ms": stats(np.array(run.camera_to_wire_ms)),
         "finetune_ms": stats(np.array(run.finetune_ms)),
+        "finetune_cpu_ms": stats(np.array(run.finetune_cpu_ms)),
         "autopilot_horizontal_error_m_after_takeover": stats(np.array([e for t, e, _ in run.autopilot_err_m
                                                                         if run.takeover_t_s is not None and t >= run.takeover_t_s + 1.0])),
         "tracking_events": tracking_events(run.records),
@@ -257,7 +259,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             deadline = time.monotonic() + 30.0
             while localizer.worker.busy.is_set() and time.monotonic() < deadline:
                 time.sleep(0.05)
-            run.finetune_ms = list(localizer.worker.wall_ms)
+            run.finetune_ms, run.finetune_cpu_ms = list(localizer.worker.wall_ms), list(localizer.worker.cpu_ms)
         map_points = np.asarray(localizer.slam.map_points().points_slam, float).reshape(-1, 3)
         received, sent = ap.received(), dict(bridge.stats().sent)
     finally:
@@ -372,6 +374,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             run.alignment_events.append((run.records[-1].t_s if run.records else 0.0,
                                          f"last GNSS bootstrap refusal: {localizer.bootstrap.last_refusal}"))
         run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
+        run.finetune_cpu_ms = list(localizer.worker.cpu_ms) if localizer.worker else []
     finally:
         localizer.close()
     summary = summarize(run, name=f"replay {ds.name}")

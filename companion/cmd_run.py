@@ -54,6 +54,8 @@ def _print_summary(summary: dict, out: Path) -> None:
     t.add_row("per-frame pipeline latency (mean / P99)", f"{fmt(lat['mean'])} / {fmt(lat['p99'])} ms")
     ft = summary["finetune_ms"]
     t.add_row("GIS fine-tune wall time (mean / P99)", f"{fmt(ft['mean'])} / {fmt(ft['p99'])} ms")
+    fc = summary["finetune_cpu_ms"]
+    t.add_row("GIS fine-tune worker CPU time (mean / P99)", f"{fmt(fc['mean'])} / {fmt(fc['p99'])} ms")
     events = [text for _, text in summary.get("alignment_events", ())]
     accepted = sum("alignment fine accepted" in e for e in events)
     t.add_row("GIS fine alignments accepted / tried", f"{accepted} / {accepted + sum('fine-tuning rejected' in e for e in events)}")

@@ -19,10 +19,9 @@ from __future__ import annotations
 import collections
 import logging
 import math
-import multiprocessing as mp
 import threading
 import time
-from concurrent.futures import CancelledError, Future, ProcessPoolExecutor
+from concurrent.futures import CancelledError, Future
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Iterator
@@ -39,6 +38,7 @@ from mavlink_bridge.monitor import h_acc_of
 from mavlink_bridge.types import GnssSample, GpsFixType
 from slam.geometry import gravity_cam_from_roll_pitch
 from slam.types import AttitudePrior, Frame, SlamPose
+from slam.worker import ForkedWorker
 
 log = logging.getLogger(__name__)
 
@@ -333,85 +333,65 @@ def _adopt_tuner(tuner: FineTuner) -> None:
     _TUNER = tuner
 
 
-def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float]:
-    t0 = time.perf_counter()
+def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float, float]:
+    """(alignment or None, reason, wall ms, CPU ms of the worker process) of one registration."""
+    t0, c0 = time.perf_counter(), time.process_time()
     reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
                           map_id=initial.map_id)
-    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3
+    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
 class FineTuneWorker:
-    """Runs FineTuner.register in its own process; at most one registration in flight (a new one
-    is refused while busy).
+    """Runs FineTuner.register in its own process (``slam.worker.ForkedWorker``); at most one
+    registration in flight (a new one is refused while busy).
 
     A process, not a thread: the registration is numpy/scipy with many small steps, so in a thread
     it competed with tracking and mapping for the GIL (measured: 85 ms alone, ~420 ms wall inside
     the pipeline on 2 cores) and lengthened tracking's frames. The worker is forked once with the
     tuner (GIS model and its crop cache stay in the child, nothing is re-sent per job); a job sends
     the SLAM points and the prior alignment, and gets back the alignment or the rejection reason.
-    ``wall_ms`` is each registration's wall time inside the worker. If the worker dies, the job in
+    ``wall_ms`` is each registration's wall time inside the worker, ``cpu_ms`` the CPU time it used
+    (on a loaded 2-core board the two differ by the time the worker waited for a core). If the worker dies, the job in
     flight reports why, and the next submit starts a new worker (never an exception on the hot path).
     """
 
     def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None]):
-        self._tuner = tuner
         self._on_result = on_result
         self.busy = threading.Event()
         self.wall_ms: list[float] = []
+        self.cpu_ms: list[float] = []
         self._lock = threading.Lock()
-        self._pool: ProcessPoolExecutor | None = self._start()
-
-    def _start(self) -> ProcessPoolExecutor:
-        # fork, as slam.ba.BAWorker: spawn would re-import __main__ and re-send the GIS model
-        pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"),
-                                   initializer=_adopt_tuner, initargs=(self._tuner,))
-        pool.submit(time.perf_counter)  # fork now, not at the first registration
-        return pool
+        self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
     def submit(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray, t_s: float) -> bool:
         with self._lock:
             if self.busy.is_set():
                 return False
-            if self._pool is None:
-                self._pool = self._start()
-            job = (_register_in_worker, points_slam, initial, center_slam, t_s)
-            try:
-                fut = self._pool.submit(*job)
-            except BrokenProcessPool:  # died while idle (e.g. killed): noticed only now
-                log.error("fine-tuning worker process had died: starting a new one")
-                self._pool.shutdown(wait=False, cancel_futures=True)
-                self._pool = self._start()
-                fut = self._pool.submit(*job)
+            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s)
             self.busy.set()
         fut.add_done_callback(self._done)
         return True
 
     def _done(self, fut: Future) -> None:
         try:
-            alignment, reason, ms = fut.result()
+            alignment, reason, ms, cpu_ms = fut.result()
         except CancelledError:
             self.busy.clear()
             return
-        except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restart it next time
+        except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restarted at the next submit
             log.error("fine-tuning worker died: %s", e)
-            with self._lock:
-                if self._pool is not None:
-                    self._pool.shutdown(wait=False, cancel_futures=True)
-                self._pool = None
-            alignment, reason, ms = None, f"fine-tuning worker died: {e}", float("nan")
+            alignment, reason, ms, cpu_ms = None, f"fine-tuning worker died: {e}", float("nan"), float("nan")
         except Exception as e:  # a failed registration must not kill the pipeline
             log.error("fine-tuning failed: %s: %s", type(e).__name__, e)
-            alignment, reason, ms = None, f"exception: {type(e).__name__}: {e}", float("nan")
+            alignment, reason, ms, cpu_ms = None, f"exception: {type(e).__name__}: {e}", float("nan"), float("nan")
         if math.isfinite(ms):
             self.wall_ms.append(ms)
+            self.cpu_ms.append(cpu_ms)
         self.busy.clear()
         self._on_result(alignment, reason, ms)
 
     def close(self) -> None:
-        with self._lock:
-            pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        self._proc.close()
 
 
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)

@@ -1,19 +1,18 @@
 """Bundle adjustment with gtsam (compiled projection factors, Levenberg-Marquardt).
 
 gtsam's Python binding holds the GIL while optimizing (measured: a thread spinning next to a
-1.3 s optimize got 3 turns), so BA runs in a separate worker process (``BAWorker``) and the
+1.3 s optimize got 3 turns), so BA runs in a separate worker process (``ba_worker``) and the
 tracking thread is never stalled by it. ``bundle_adjust`` itself is a pure function on arrays.
 """
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
+
+from slam.worker import ForkedWorker
 
 
 log = logging.getLogger(__name__)
@@ -156,30 +155,7 @@ def _warm() -> bool:
     return True
 
 
-class BAWorker:
-    """One BA worker process shared by local mapping and loop closing. If the process dies
-    (killed, out of memory) the BA in flight fails with BrokenProcessPool and the next submit
-    starts a new worker: mapping goes on, one BA is lost."""
-
-    def __init__(self) -> None:
-        self._pool = self._start()
-
-    @staticmethod
-    def _start() -> ProcessPoolExecutor:
-        # fork, not spawn/forkserver: those re-import the caller's __main__, which breaks scripts
-        # without a __main__ guard; the child only runs gtsam on the arrays it is sent.
-        pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"))
-        pool.submit(_warm)
-        return pool
-
-    def submit(self, problem: BAProblem) -> Future:
-        try:
-            return self._pool.submit(bundle_adjust, problem)
-        except BrokenProcessPool:
-            log.error("bundle-adjustment worker process had died: starting a new one")
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = self._start()
-            return self._pool.submit(bundle_adjust, problem)
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+def ba_worker() -> ForkedWorker:
+    """The BA worker process shared by local mapping and loop closing: ``submit(bundle_adjust,
+    problem)``. If it dies the BA in flight fails (BrokenProcessPool) and mapping goes on."""
+    return ForkedWorker("bundle-adjustment", warm=_warm)

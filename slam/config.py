@@ -30,6 +30,7 @@ class SlamConfig(BaseModel):
     init_min_matches: int = Field(150, ge=30, le=5000, description="feature matches needed to attempt/keep two-view initialization")
     init_min_flow_px: float = Field(20.0, gt=0, le=300, description="median feature motion before trying two-view initialization (px)")
     reloc_keyframes: int = Field(60, ge=2, le=10000, description="most recent keyframes whose points relocalization searches")
+    reloc_place_candidates: int = Field(3, ge=0, le=20, description="keyframes anywhere in the map that place recognition finds most like a lost frame; relocalization searches their points (and 2 neighbours' each) too")
     reloc_min_inliers: int = Field(40, ge=10, le=1000, description="PnP inliers needed to accept a relocalization")
     reset_after_lost_frames: int = Field(90, ge=1, le=100000, description="frames lost before the map is abandoned and re-initialized (reset_counter+1)")
     # mapping

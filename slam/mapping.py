@@ -14,12 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.ba import BAProblem, BAResult, BAWorker
+from slam.ba import BAProblem, BAResult, ba_worker, bundle_adjust
 from slam.config import SlamConfig
 from slam.geometry import correct_pose_by_sim3, ransac_sim3, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import match_bf
-from slam.place import PlaceIndex
+from slam.place import PlaceIndex, place_index_of
 from slam.plm import plm_window, recursive_loop_closing
 from slam.tracking import Shared
 from slam.types import MapUpdate
@@ -121,11 +121,13 @@ class LocalMapper:
         self.stats = MappingStats()
         self.updates = UpdateQueue(config.max_queued_map_updates)
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._place = PlaceIndex()
+        with slam_map.lock:  # a map loaded from disk: its keyframes are places to close loops with
+            self._place = place_index_of([slam_map.keyframes[k] for k in slam_map.kf_ids()])
+        shared.place = (slam_map, self._place)
         self._anchors: list[int] = []  # loop anchors: old keyframes kept with features (see _forget_old)
         self._retired_upto = -1  # keyframes with ids up to this one have left the active window
         self._n_retired = 0
-        self._ba = BAWorker()
+        self._ba = ba_worker()
         self._lm_version = 0
         self._correction_gen = 0
         self._loop_cooldown_until = 0
@@ -176,6 +178,7 @@ class LocalMapper:
                     self._finish_ba(wait=True)
                     self.map = item.new_map
                     self._place = PlaceIndex()
+                    self.shared.place = (item.new_map, self._place)
                     self._anchors, self._retired_upto, self._n_retired = [], -1, 0
                     self.reset_counter += 1
                 else:
@@ -255,7 +258,7 @@ class LocalMapper:
         job = self._build_ba(ids[-win:], max_fixed=n_fixed)
         if job is not None:
             self.stats.ba_window.append(win)
-            self._pending_ba = (self._ba.submit(job[0]), job, kf)
+            self._pending_ba = (self._ba.submit(bundle_adjust, job[0]), job, kf)
 
     def _finish_ba(self, wait: bool) -> None:
         """Apply the in-flight local BA once it is done (BA never holds up new keyframes' mapping)."""
@@ -286,7 +289,7 @@ class LocalMapper:
         if job is None:
             return None
         try:
-            res: BAResult = self._ba.submit(job[0]).result()
+            res: BAResult = self._ba.submit(bundle_adjust, job[0]).result()
         except BrokenProcessPool:
             log.error("bundle-adjustment worker died during a loop-closing BA: that BA is skipped")
             return None

@@ -2,6 +2,7 @@
 pose-only refinement, keyframe decisions and the tracking state machine (issue 4 §1)."""
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -67,6 +68,7 @@ class Shared:
     mapping_busy: bool = False
     pending_keyframes: int = 0  # keyframes queued for local mapping (set by the system)
     active_map: object = None  # the tracker's current SlamMap; mapping publishes only for this one
+    place: tuple[object, object] | None = None  # (SlamMap, its slam.place.PlaceIndex), set by mapping
 
 
 @dataclass
@@ -93,6 +95,18 @@ class _Init:
     gravity: Gravity | None = None
 
 
+def reloc_keyframes(kf_ids: list[int], place_ids: list[int], n_recent: int, n_neighbours: int = 2) -> list[int]:
+    """Keyframes whose points relocalisation searches: the ``n_recent`` newest of ``kf_ids``
+    (sorted) and each place-recognition candidate with up to ``n_neighbours`` keyframes either side
+    of it in id order (a place seen once is covered by its neighbours' points too)."""
+    chosen = set(kf_ids[-n_recent:])
+    for k in place_ids:
+        i = bisect.bisect_left(kf_ids, k)
+        if i < len(kf_ids) and kf_ids[i] == k:
+            chosen.update(kf_ids[max(0, i - n_neighbours): i + n_neighbours + 1])
+    return sorted(chosen)
+
+
 @dataclass
 class Tracker:
     K: np.ndarray
@@ -113,6 +127,7 @@ class Tracker:
     _correction_gen: int = 0
     _reloc_map: LocalMap | None = None
     _reloc_age: int = 0
+    _reloc_queried: bool = False  # the relocalisation map was built with a place query of a usable frame
     _reloc_timeout_s: float | None = None  # set by resume(): relocalise within this much frame time or reset
     _reloc_deadline_t_s: float | None = None
     _gravity: Gravity | None = None  # of the frame being tracked (slam.use_attitude_prior)
@@ -245,7 +260,9 @@ class Tracker:
             self.T_vel = np.eye(4)
 
     def _relocalize(self, frame: Frame, feats: Features) -> TrackResult:
-        """Match against the points of the recent keyframes (brute force, no pose prior) + PnP."""
+        """Match against the points of the recent keyframes and of those the place index finds most
+        like this frame (brute force, no pose prior) + PnP. The set is rebuilt every 15 lost frames,
+        and at once when the last one could not query the place index (e.g. built on a black frame)."""
         self.lost_frames += 1
         c = self.config
         if self._reloc_timeout_s is not None:  # resumed in a loaded map: a time budget
@@ -256,11 +273,14 @@ class Tracker:
             give_up = self.lost_frames > c.reset_after_lost_frames
         if give_up:
             return self._reset(frame, feats)
-        if self._reloc_map is None or self._reloc_age >= 15:
+        place = self.shared.place[1] if self.shared.place is not None and self.shared.place[0] is self.map else None
+        if (self._reloc_map is None or self._reloc_age >= 15
+                or (not self._reloc_queried and place is not None and len(feats) >= c.min_inliers)):
+            cands = place.query(feats.desc, top=c.reloc_place_candidates) if place is not None else []
             with self.map.lock:
-                ids = self.map.kf_ids()[-c.reloc_keyframes:]
+                ids = reloc_keyframes(self.map.kf_ids(), [p.kf_id for p in cands], c.reloc_keyframes)
                 self._reloc_map = self.map.local_map(ids, -1)
-            self._reloc_age = 0
+            self._reloc_age, self._reloc_queried = 0, place is not None and len(feats) >= c.min_inliers
         self._reloc_age += 1
         lm = self._reloc_map
         if len(feats) >= c.min_inliers and len(lm.point_ids) >= c.min_inliers:

@@ -158,22 +158,22 @@ def test_ba_worker_restarts_after_its_process_is_killed():
 
     import psutil
 
-    from slam.ba import BAWorker
+    from slam.ba import ba_worker, bundle_adjust
 
     prob, _ = _ba_problem()
-    worker = BAWorker()
+    worker = ba_worker()
     try:
-        first = worker.submit(prob).result(timeout=60)
+        first = worker.submit(bundle_adjust, prob).result(timeout=60)
         (child,) = psutil.Process().children()
         os.kill(child.pid, signal.SIGKILL)
         child.wait(10)
         fut = None
         try:  # the pool notices the death at the next use: either this submit or its result fails
-            fut = worker.submit(prob)
+            fut = worker.submit(bundle_adjust, prob)
             fut.result(timeout=60)
         except BrokenProcessPool:
             pass
-        again = worker.submit(prob).result(timeout=60)  # a new worker process solves it
+        again = worker.submit(bundle_adjust, prob).result(timeout=60)  # a new worker process solves it
         (new_child,) = psutil.Process().children()
         assert new_child.pid != child.pid
         assert again.final_error == pytest.approx(first.final_error, rel=1e-6)

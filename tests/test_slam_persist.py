@@ -148,9 +148,11 @@ def test_restart_relocalises_in_the_old_map_frame(saved_map: Saved) -> None:
     assert len(errs_m) >= len(tracked) - 1
     # The relocalised pose is where the original run was. The reference moves too: the original run
     # keeps refining its map after the save, and a new keyframe's BA moves a monocular map by up to a
-    # few metres at 80 m range in either run (measured: first frame 0.03-0.94 m, later up to 7 m).
-    # A relocalisation in the wrong place would be tens of metres off; a fresh map has another id.
-    assert errs_m[0] < 1.5 and np.median(errs_m) < 3.0, errs_m
+    # few metres at 80 m range in either run (measured: first frame 0.03-0.94 m, later up to 7 m; a
+    # 3.3-4.4 m step a few frames after the restart in most runs, so the median over 10 frames lands
+    # on either side of 3 m). A relocalisation in the wrong place would be tens of metres off; a
+    # fresh map has another id.
+    assert errs_m[0] < 1.5 and np.median(errs_m) < 5.0 and max(errs_m) < 10.0, errs_m
 
 
 def test_relocalisation_timeout_falls_back_to_a_fresh_map(saved_map: Saved) -> None:
@@ -167,6 +169,71 @@ def test_relocalisation_timeout_falls_back_to_a_fresh_map(saved_map: Saved) -> N
     last = poses[-1]
     assert last.state == TrackingState.INITIALIZING
     assert last.reset_counter == saved_map.reset_counter + 1 and last.map_id != saved_map.map_id
+
+
+@dataclass
+class TurnMap:
+    camera: CameraModel
+    images: dict[int, np.ndarray]  # frame index -> grayscale image
+    path: Path
+    map_key: tuple[int, int]
+    T_slam_cam_ref: dict[int, np.ndarray]
+    m_per_unit: float
+
+
+@pytest.fixture(scope="session")
+def turn_map(tmp_path_factory) -> TurnMap:
+    """A map of the nominal flight from 7 s before its first turn to 1.5 s into it (10 fps, mapping
+    waited for after each frame): its newest keyframes look away from where it started."""
+    import cv2
+
+    from companion.bench import first_turn_s
+    from companion.sim import make_scenario
+
+    sc = make_scenario("nominal", fps=FPS)
+    t_turn_s = first_turn_s(sc)
+    idx = range(int((t_turn_s - 7.0) * FPS), int((t_turn_s + 1.5) * FPS))
+    images = {i: cv2.cvtColor(sc.render(i).image_bgr, cv2.COLOR_BGR2GRAY) for i in idx}
+    path = tmp_path_factory.mktemp("turn") / "slam_map.npz"
+    ref: dict[int, np.ndarray] = {}
+    with SlamSystem(sc.camera, SlamConfig()) as s:
+        for i in idx:
+            p = s.track(Frame(images[i], i / FPS, i))
+            s.wait_mapping()
+            if p.state.has_pose and p.reset_counter == 0:
+                ref[i] = p.T_slam_cam
+        assert p.state.has_pose and p.reset_counter == 0, "the original run must track through the start of the turn"
+        s.save_map(path)
+        key = s.current_map_key()
+    i, j = min(ref), max(ref)
+    c = sc.truth.T_enu_cam[:, :3, 3]
+    mpu = float(np.linalg.norm(c[j] - c[i]) / np.linalg.norm(ref[j][:3, 3] - ref[i][:3, 3]))
+    return TurnMap(sc.camera, images, path, key, ref, mpu)
+
+
+@pytest.mark.parametrize("place_candidates", [3, 0])
+def test_restart_relocalises_anywhere_in_the_map_through_place_recognition(turn_map: TurnMap, place_candidates: int) -> None:
+    """Restarted over the START of the saved map while relocalisation searches only its newest 2
+    keyframes (taken in the turn, looking elsewhere): the place index, rebuilt from the loaded
+    keyframes, finds the old keyframes this frame looks like, and the pose lands where the original
+    run was. Without place candidates (0) the same frames do not relocalise."""
+    tm = turn_map
+    loaded = load_map_file(tm.path, tm.camera)
+    cfg = SlamConfig(reloc_keyframes=2, reloc_place_candidates=place_candidates)
+    frames = sorted(tm.T_slam_cam_ref)[2:12]
+    with SlamSystem(tm.camera, cfg, initial_map=loaded, reloc_timeout_s=30.0) as s:
+        poses = [(i, s.track(Frame(tm.images[i], 100.0 + i / FPS, i))) for i in frames]
+    states = [p.state.value for _, p in poses]
+    print(f"place candidates {place_candidates}: {states}")
+    assert all((p.map_id, p.reset_counter) == tm.map_key for _, p in poses)
+    if place_candidates == 0:
+        assert all(p.state == TrackingState.LOST for _, p in poses), states
+        return
+    tracked = [(i, p) for i, p in poses if p.state.has_pose]
+    assert len(tracked) >= len(poses) - 2 and tracked[0][1].state == TrackingState.RELOCALIZED, states
+    errs_m = [tm.m_per_unit * np.linalg.norm(p.T_slam_cam[:3, 3] - tm.T_slam_cam_ref[i][:3, 3]) for i, p in tracked]
+    print(f"camera centre vs the original run [m]: {np.round(errs_m, 2)}")
+    assert np.median(errs_m) < 3.0, errs_m  # a wrong place would be tens of metres off
 
 
 # --- bad files -----------------------------------------------------------------------------------
