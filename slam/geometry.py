@@ -217,7 +217,7 @@ def _motion_candidates(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> list[
 
 def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_points: int = 80,
                         min_parallax_deg: float = 1.0, min_median_parallax_deg: float = 1.5,
-                        min_translation_share: float = 0.5, epipolar_px: float = 1.0,
+                        min_translation_flow_px: float = 3.0, epipolar_px: float = 1.0,
                         ambiguity_ratio: float = 0.9, distinct_deg: float = 20.0) -> TwoViewInit | None:
     """Monocular initialization: the homography's decompositions and the essential matrix's pose
     compete; each needs ``min_points`` matches triangulated in front of both cameras with
@@ -233,11 +233,15 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
     least ``ambiguity_ratio`` times as many matches, the views are ambiguous and None is returned
     (wait for more parallax), as ORB-SLAM does for close homography solutions. So it is when the
     winner's triangulated points have a median parallax below ``min_median_parallax_deg``, or when
-    less than ``min_translation_share`` of the median image motion is left once the winner's
-    rotation is taken out: in a turn the flow is mostly rotation, and with a narrow field of view
-    rotation and translation are confounded, so the translation (direction and scale of the new
-    map) is too weakly determined. Measured on the simulator's 10 fps flights, the twin was picked
-    in about half the initialisations by the count of triangulated points; see docs/BENCHMARKS.md.
+    the best pure rotation explains the winner's epipolar inliers to a median of less than
+    ``min_translation_flow_px``: in a turn, or when the drone pitches over at take-off, the flow is
+    mostly rotation, and with this field of view a small rotation and a translation move the image
+    alike, so the translation (direction and scale of the new map) is only as well determined as
+    the motion no rotation can explain. (A share of the winner's derotated flow, used before, was
+    fooled both ways: the winner's own rotation absorbs or invents translation, and a large
+    rotation left the nominal take-off waiting 112 frames with 8 m of baseline.) Measured on the
+    simulator's 10 fps flights, the twin was picked in about half the initialisations by the count
+    of triangulated points; see docs/BENCHMARKS.md.
     """
     if len(uv1) < min_points:
         return None
@@ -247,26 +251,31 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
         T2 = make_T(R, t)
         p, good = triangulate(K, T1, T2, uv1, uv2, max_reproj_px=4.0, min_parallax_deg=min_parallax_deg)
         if good.sum() >= min_points:
-            n_epi = int((sampson_px2(K, R, t, uv1, uv2) < epipolar_px ** 2).sum())
-            scored.append((n_epi, TwoViewInit(T2, p, good, model)))
+            epipolar = sampson_px2(K, R, t, uv1, uv2) < epipolar_px ** 2
+            scored.append((int(epipolar.sum()), epipolar, TwoViewInit(T2, p, good, model)))
     if not scored:
         return None
-    n_best, best = max(scored, key=lambda x: x[0])
+    n_best, epipolar_best, best = max(scored, key=lambda x: x[0])
     t_best = best.T_cam2_cam1[:3, 3]
     cos_distinct = np.cos(np.deg2rad(distinct_deg))
-    if any(n >= ambiguity_ratio * n_best and init.T_cam2_cam1[:3, 3] @ t_best < cos_distinct for n, init in scored):
+    if any(n >= ambiguity_ratio * n_best and init.T_cam2_cam1[:3, 3] @ t_best < cos_distinct for n, _, init in scored):
         return None
     if np.median(_parallax_deg(best.points_cam1[best.good], camera_center(best.T_cam2_cam1))) < min_median_parallax_deg:
         return None
-    flow_px = np.median(np.linalg.norm(uv2 - uv1, axis=1))
-    if _derotated_flow_px(K, best.T_cam2_cam1[:3, :3], uv1, uv2) < min_translation_share * flow_px:
+    if rotation_residual_px(K, uv1[epipolar_best], uv2[epipolar_best]) < min_translation_flow_px:
         return None
     return best
 
 
-def _derotated_flow_px(K: np.ndarray, R: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> float:
-    """Median image motion left after mapping uv1 through the rotation R (infinite homography)."""
-    x = np.c_[uv1, np.ones(len(uv1))] @ (K @ R @ np.linalg.inv(K)).T
+def rotation_residual_px(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> float:
+    """Median image motion (px) that no camera rotation explains: the residual of uv1 mapped by the
+    least-squares rotation of its rays onto uv2's (a pure rotation moves pixels by K R K⁻¹)."""
+    Kinv = np.linalg.inv(K)
+    rays1 = np.c_[uv1, np.ones(len(uv1))] @ Kinv.T
+    rays2 = np.c_[uv2, np.ones(len(uv2))] @ Kinv.T
+    rot, _ = Rotation.align_vectors(rays2 / np.linalg.norm(rays2, axis=1, keepdims=True),
+                                    rays1 / np.linalg.norm(rays1, axis=1, keepdims=True))
+    x = rays1 @ (K @ rot.as_matrix()).T
     return float(np.median(np.linalg.norm(x[:, :2] / x[:, 2:] - uv2, axis=1)))
 
 
