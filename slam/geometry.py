@@ -217,7 +217,7 @@ def _motion_candidates(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> list[
 
 def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_points: int = 80,
                         min_parallax_deg: float = 1.0, min_median_parallax_deg: float = 1.5,
-                        min_translation_flow_px: float = 3.0, epipolar_px: float = 1.0,
+                        min_translation_flow_px: float = 2.0, epipolar_px: float = 1.0,
                         ambiguity_ratio: float = 0.9, distinct_deg: float = 20.0) -> TwoViewInit | None:
     """Monocular initialization: the homography's decompositions and the essential matrix's pose
     compete; each needs ``min_points`` matches triangulated in front of both cameras with
@@ -239,9 +239,10 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
     alike, so the translation (direction and scale of the new map) is only as well determined as
     the motion no rotation can explain. (A share of the winner's derotated flow, used before, was
     fooled both ways: the winner's own rotation absorbs or invents translation, and a large
-    rotation left the nominal take-off waiting 112 frames with 8 m of baseline.) Measured on the
-    simulator's 10 fps flights, the twin was picked in about half the initialisations by the count
-    of triangulated points; see docs/BENCHMARKS.md.
+    rotation left the nominal take-off waiting 112 frames with 8 m of baseline; the 2 px default
+    refuses a 10 deg yaw with 1 m at 80 m up, 1.4 px, and lets the take-off start at 2 m, 2.2 px.)
+    Measured on the simulator's 10 fps flights, the twin was picked in about half the
+    initialisations by the count of triangulated points; see docs/BENCHMARKS.md.
     """
     if len(uv1) < min_points:
         return None

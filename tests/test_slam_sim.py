@@ -65,8 +65,9 @@ def test_takeoff_initialises_once_the_translation_shows(seq_cache_dir):
     T_true = np.linalg.inv(seq.T_enu_cam[kf2.seq]) @ seq.T_enu_cam[kf1.seq]  # T_cam2_cam1
     baseline_m = np.linalg.norm(T_true[:3, 3])
     t_est = kf2.T_cam_slam[:3, 3] / np.linalg.norm(kf2.T_cam_slam[:3, 3])  # the SLAM frame is camera 1's
-    assert baseline_m > 2.0, (kf1.seq, kf2.seq, baseline_m)
-    assert t_est @ T_true[:3, 3] / baseline_m > 0.95, (kf1.seq, kf2.seq, t_est, T_true[:3, 3] / baseline_m)
+    # measured: frames 0 -> 68, 2.1 m, direction 16 deg off (the earlier rule: 0 -> 16, 7 mm, 49 deg)
+    assert baseline_m > 1.5, (kf1.seq, kf2.seq, baseline_m)
+    assert t_est @ T_true[:3, 3] / baseline_m > np.cos(np.deg2rad(22)), (kf1.seq, kf2.seq, t_est, T_true[:3, 3] / baseline_m)
 
 
 def test_relocalizes_after_forced_loss(nominal):
