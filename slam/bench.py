@@ -554,6 +554,21 @@ def prior_main(seq: Sequence, base: SlamConfig, a: argparse.Namespace) -> None:
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
 
 
+def start_frame(scenario: str, seed: int, fps: float | None, start_s: str) -> int:
+    """First frame of a run: ``start_s`` seconds of flight, or 'turn': 10 s before the first turn
+    (companion.bench.bench_window_s, the pipeline benchmark's window)."""
+    from companion.sim import make_scenario
+
+    sc = make_scenario(scenario, seed=seed, **({"fps": fps} if fps else {}))
+    if start_s == "turn":
+        from companion.bench import first_turn_s  # the benchmark, not slam/, uses the pipeline's window
+
+        t = max(0.0, first_turn_s(sc) - 10.0)
+    else:
+        t = float(start_s)
+    return int(round(t * sc.fps))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenario", default="nominal")
@@ -573,10 +588,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fps", type=float, default=10.0, help="--memory: camera frame rate")
     ap.add_argument("--sample-every", type=int, default=300, help="--memory: frames between samples")
     ap.add_argument("--render-only", action="store_true", help="--memory: render the lap into --cache-dir and stop")
-    ap.add_argument("--lockstep", action="store_true", help="--memory / --attitude-prior: wait for local mapping after each keyframe (frame)")
+    ap.add_argument("--lockstep", action="store_true", help="wait for local mapping after each frame (--memory: each keyframe)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="--memory: SlamConfig override, e.g. --set max_keyframes=200 (repeatable)")
     ap.add_argument("--camera-fps", type=float, default=None, help="render the scenario at this frame rate instead of its own")
+    ap.add_argument("--start-s", default="0",
+                    help="flight time of the first frame (s), or 'turn': 10 s before the first turn, as terraslam bench's window")
     ap.add_argument("--attitude-prior", choices=["off", "on", "both"], default="off",
                     help="feed the simulated autopilot's gravity direction (slam.use_attitude_prior); both: alternate off/on runs")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration (SLAM is not bit-reproducible)")
@@ -585,8 +602,9 @@ def main(argv: list[str] | None = None) -> None:
         memory_main(a)
         return
     t0 = time.perf_counter()
-    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, fps=a.camera_fps)
-    print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' in {time.perf_counter() - t0:.0f} s")
+    start = start_frame(a.scenario, a.seed, a.camera_fps, a.start_s)
+    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, start=start, fps=a.camera_fps)
+    print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' from frame {start} in {time.perf_counter() - t0:.0f} s")
     base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
     if a.loop_ablation:
         res = loop_ablation(seq, base)
@@ -604,7 +622,8 @@ def main(argv: list[str] | None = None) -> None:
     results = []
     for name, cfg in runs:
         cfg = cfg.model_copy(update=dict(torch_device=a.device))
-        r = run_sequence(seq, cfg, name, realtime=not a.no_realtime, blackout=blackout, drop_late=a.drop_late)
+        r = run_sequence(seq, cfg, name, realtime=not a.no_realtime, blackout=blackout, drop_late=a.drop_late,
+                         lockstep=a.lockstep)
         print(report(r), flush=True)
         results.append(r)
     if a.ablation:

@@ -121,6 +121,7 @@ class Tracker:
     T_vel: np.ndarray = field(default_factory=lambda: np.eye(4))  # T_cur_prev of the last step
     frames_since_kf: int = 0
     ref_kf_points: int = 0
+    R_kf_cam_slam: np.ndarray = field(default_factory=lambda: np.eye(3))  # orientation of the last keyframe
     lost_frames: int = 0
     _init: _Init | None = None
     _correction_gen: int = 0
@@ -174,19 +175,34 @@ class Tracker:
         self.frames_since_kf += 1
         kf = None
         n = len(est.inlier_pid)
-        c = self.config
-        need = (self.frames_since_kf >= c.max_frames_between_keyframes
-                or (n < c.keyframe_inlier_ratio * self.ref_kf_points and self.frames_since_kf >= c.min_frames_between_keyframes
-                    and not self.shared.mapping_busy)
-                or (n < 2 * c.min_inliers and self.frames_since_kf >= 1 and self.shared.pending_keyframes < 2))
-        if need:
+        if self._need_keyframe(est.T_cam_slam, n):
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
             kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity)
-            self.frames_since_kf = 0
-            self.ref_kf_points = n
-            self.shared.mapping_busy = True
+            self._keyed(est.T_cam_slam, n)
         return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)
+
+    def _need_keyframe(self, T_cam_slam: np.ndarray, n_inliers: int) -> bool:
+        """ORB-SLAM-like keyframe rules, plus one for turns: a keyframe once the camera has turned
+        ``keyframe_max_rotation_deg`` since the last one. At 10 fps a 30 deg/s turn leaves the last
+        keyframe's view within a second, and the points the tracker needs there come only from
+        keyframes; without it the turn was crossed with keyframes 20+ deg apart, tracked on few
+        points, and the pose errors made there bent the map (docs/BENCHMARKS.md)."""
+        c = self.config
+        k = self.frames_since_kf
+        rotated_deg = np.degrees(np.arccos(np.clip((np.trace(T_cam_slam[:3, :3] @ self.R_kf_cam_slam.T) - 1) / 2, -1, 1)))
+        return (k >= c.max_frames_between_keyframes
+                or (n_inliers < c.keyframe_inlier_ratio * self.ref_kf_points and k >= c.min_frames_between_keyframes
+                    and not self.shared.mapping_busy)
+                or (rotated_deg > c.keyframe_max_rotation_deg and k >= 1 and self.shared.pending_keyframes < 2)
+                or (n_inliers < 2 * c.min_inliers and k >= 1 and self.shared.pending_keyframes < 2))
+
+    def _keyed(self, T_cam_slam: np.ndarray, n_inliers: int) -> None:
+        """Bookkeeping after a keyframe was made at pose T_cam_slam."""
+        self.frames_since_kf = 0
+        self.ref_kf_points = n_inliers
+        self.R_kf_cam_slam = T_cam_slam[:3, :3].copy()
+        self.shared.mapping_busy = True
 
     def _keyframe(self, frame: Frame, T_cam_slam: np.ndarray, feats: Features, point_ids: np.ndarray,
                   gravity: Gravity | None) -> Keyframe:
@@ -345,8 +361,6 @@ class Tracker:
         self.T_last = T2
         self.T_vel = np.eye(4)
         self.state = TrackingState.OK
-        self.frames_since_kf = 0
-        self.ref_kf_points = len(pts)
-        self.shared.mapping_busy = True
+        self._keyed(T2, len(pts))
         # kf2 goes to local mapping for its first BA (kf1 is already in the map)
         return TrackResult(TrackingState.OK, T2, len(pts), new_keyframe=kf2)

@@ -23,7 +23,8 @@ from slam.system import SlamSystem
 from slam.types import CameraModel, Frame, TrackingState
 
 FPS = 10.0
-N_MAP = 45     # frames the first "process" maps before its map is saved
+N_MAP = 55     # frames the first "process" maps before its map is saved; the map starts at
+               # frame ~26 (3 m flown: the take-off pitch-over before it is rotation, not baseline)
 GAP = 6        # frames the vehicle flies while the service restarts (0.6 s, ~6 m)
 N_AFTER = 10   # frames after the restart
 
