@@ -222,8 +222,7 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
     """Monocular initialization: the homography's decompositions and the essential matrix's pose
     compete; each needs ``min_points`` matches triangulated in front of both cameras with
     ``min_parallax_deg``, and the winner is the one most matches agree with epipolarly (Sampson
-    distance < ``epipolar_px``); the essential pose wins a near tie (``ambiguity_ratio``) with a
-    homography solution of the same motion.
+    distance < ``epipolar_px``).
 
     Aerial imagery is near-planar (ground seen from altitude), where a homography has two physically
     valid decompositions: the true motion, and a twin whose translation is the plane's normal (the
@@ -262,15 +261,6 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
     cos_distinct = np.cos(np.deg2rad(distinct_deg))
     if any(n >= ambiguity_ratio * n_best and init.T_cam2_cam1[:3, 3] @ t_best < cos_distinct for n, _, init in scored):
         return None
-    # the same motion from the essential matrix, about as well supported: take it. It is fitted to
-    # all matches, the off-plane ones included, where the homography's is fitted to the dominant
-    # plane. Measured, not derived: on the simulator's 10 flights of docs/BENCHMARKS.md the error
-    # after the GNSS loss went 2.10 -> 1.56 m mean (5 better, 3 worse, 2 the same pick); on the
-    # constructed scenes of tests/test_slam_init_turns.py the homography's direction is no worse.
-    same_motion = [x for x in scored if x[2].model == "essential" and x[0] >= ambiguity_ratio * n_best
-                   and x[2].T_cam2_cam1[:3, 3] @ t_best >= cos_distinct]
-    if same_motion:
-        n_best, epipolar_best, best = same_motion[0]
     if np.median(_parallax_deg(best.points_cam1[best.good], camera_center(best.T_cam2_cam1))) < min_median_parallax_deg:
         return None
     if rotation_residual_px(K, uv1[epipolar_best], uv2[epipolar_best]) < min_translation_flow_px:
