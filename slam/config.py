@@ -25,6 +25,7 @@ class SlamConfig(BaseModel):
     pnp_reproj_px: float = Field(3.0, gt=0, le=20, description="PnP inlier reprojection gate (px)")
     keyframe_inlier_ratio: float = Field(0.75, gt=0, le=1, description="new keyframe when inliers drop below this share of the reference keyframe's")
     min_frames_between_keyframes: int = Field(3, ge=1, le=100, description="earliest keyframe after the last one (frames)")
+    triangulation_min_baseline_ratio: float = Field(0.05, ge=0, le=0.5, description="new points only from keyframe pairs at least this share of the scene depth apart (the 2 newest of the last 8; else the previous keyframe); 0: the 2 previous keyframes")
     keyframe_max_rotation_deg: float = Field(10.0, gt=0, le=180, description="new keyframe once the camera has turned this much since the last one (turns)")
     max_frames_between_keyframes: int = Field(20, ge=1, le=1000, description="latest keyframe after the last one (frames)")
     init_min_matches: int = Field(150, ge=30, le=5000, description="feature matches needed to attempt/keep two-view initialization")

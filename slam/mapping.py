@@ -134,6 +134,34 @@ def point_parallax_deg(m: SlamMap, pids: list[int]) -> np.ndarray:
     return out
 
 
+TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
+
+
+def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baseline_ratio: float) -> list[int]:
+    """Keyframes (ids, newest first) the new keyframe ``kf`` triangulates its unmatched features
+    with: the 2 newest of the last TRIANGULATION_LOOKBACK earlier ones whose centre is at least
+    ``min_baseline_ratio`` × kf's median scene depth away; only the previous keyframe when none is.
+    With 0 (or without tracked points to measure the depth): the 2 previous keyframes.
+
+    Why: in a turn the tracker adds a keyframe every ``keyframe_max_rotation_deg``, a few metres
+    apart at 100+ m depth. Points triangulated between such neighbours have 1–2° of parallax, depth
+    errors of ~5–10 %, and they carried the map's scale 4–8 % off through each turn (the error after
+    a GNSS loss doubled; docs/BENCHMARKS.md). ORB-SLAM skips neighbours under 1 % of the depth
+    (LocalMapping::CreateNewMapPoints); ours needs more because the turn keyframes are dense.
+    ``ids`` is the map's keyframe ids in order, kf's last. Call with m.lock held."""
+    earlier = ids[-TRIANGULATION_LOOKBACK - 1:-1]
+    if min_baseline_ratio <= 0:
+        return earlier[-2:]
+    pids = [p for p in kf.point_ids.tolist() if p >= 0 and p in m.points]
+    if len(pids) < 10:  # no depth to compare with
+        return earlier[-2:]
+    P = np.array([m.points[p].p_slam for p in pids])
+    depth_m = float(np.median(P @ kf.T_cam_slam[2, :3] + kf.T_cam_slam[2, 3]))
+    c = kf.center
+    far = [i for i in reversed(earlier) if np.linalg.norm(m.keyframes[i].center - c) >= min_baseline_ratio * depth_m]
+    return far[:2] or earlier[-1:]
+
+
 class LocalMapper:
     def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
                  reset_counter: int = 0) -> None:
@@ -236,9 +264,12 @@ class LocalMapper:
 
     # --- local mapping --------------------------------------------------------------------------
     def _triangulate(self, kf: Keyframe, ids: list[int]) -> None:
-        """New points from the new keyframe's unmatched features and those of its 2 predecessors."""
+        """New points from the new keyframe's unmatched features and those of up to 2 earlier
+        keyframes with enough baseline (triangulation_partners)."""
         m = self.map
-        for other_id in ids[-3:-1]:
+        with m.lock:
+            partners = triangulation_partners(m, kf, ids, self.config.triangulation_min_baseline_ratio)
+        for other_id in partners:
             other = m.keyframes[other_id]
             a = np.flatnonzero(kf.point_ids < 0)
             b = np.flatnonzero(other.point_ids < 0)
