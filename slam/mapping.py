@@ -138,10 +138,11 @@ TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation par
 
 
 def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baseline_ratio: float) -> list[int]:
-    """Keyframes (ids, newest first) the new keyframe ``kf`` triangulates its unmatched features
-    with: the 2 newest of the last TRIANGULATION_LOOKBACK earlier ones whose centre is at least
-    ``min_baseline_ratio`` × kf's median scene depth away; only the previous keyframe when none is.
-    With 0 (or without tracked points to measure the depth): the 2 previous keyframes.
+    """Keyframe ids the new keyframe ``kf`` triangulates its unmatched features with: the 2 newest
+    (newest first) of the last TRIANGULATION_LOOKBACK earlier ones whose centre is at least
+    ``min_baseline_ratio`` × kf's median scene depth away (both in SLAM units: the ratio is
+    scale-free); only the previous keyframe when none is. With 0, or with < 10 tracked points to
+    measure the depth: the 2 previous keyframes, oldest first (the rule before this one).
 
     Why: in a turn the tracker adds a keyframe every ``keyframe_max_rotation_deg``, a few metres
     apart at 100+ m depth. Points triangulated between such neighbours have 1–2° of parallax, depth
@@ -156,9 +157,9 @@ def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baselin
     if len(pids) < 10:  # no depth to compare with
         return earlier[-2:]
     P = np.array([m.points[p].p_slam for p in pids])
-    depth_m = float(np.median(P @ kf.T_cam_slam[2, :3] + kf.T_cam_slam[2, 3]))
+    depth_slam = float(np.median(P @ kf.T_cam_slam[2, :3] + kf.T_cam_slam[2, 3]))  # along the optical axis
     c = kf.center
-    far = [i for i in reversed(earlier) if np.linalg.norm(m.keyframes[i].center - c) >= min_baseline_ratio * depth_m]
+    far = [i for i in reversed(earlier) if np.linalg.norm(m.keyframes[i].center - c) >= min_baseline_ratio * depth_slam]
     return far[:2] or earlier[-1:]
 
 
