@@ -20,6 +20,7 @@ def bench(
     ablation: bool = typer.Option(False, "--ablation", help="also run baseline / +GA / +PLM / +RLC (TerraSLAM Fig. 14)"),
     sweep: Optional[str] = typer.Option(None, "--sweep", help="map-size sweep of fine-tuning cost: box-city extents in m, e.g. 1000,10000"),
     seed: int = typer.Option(0, "--seed"),
+    seeds: Optional[str] = typer.Option(None, "--seeds", help="with --suite: run it once per seed (e.g. 0,1,2,3) into OUT/seed_N/ and print the error after the loss per seed, mean and median (one run is not reproducible to better than ~0.5 m)"),
     receiver: Optional[str] = typer.Option(None, "--receiver", help="simulated GNSS receiver grade before the loss: standalone (~4 m 1-σ) | dgps (SBAS/DGPS, ~0.8 m) | urban; default: the scenario's (standalone)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
@@ -27,7 +28,7 @@ def bench(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from companion.bench import bench_one, bench_suite, markdown_summary, suite_table
+    from companion.bench import bench_one, bench_suite, markdown_summary, seeds_table, suite_table
     from companion.config import ConfigError, load_config
     from companion.sim.scenario import SCENARIOS
 
@@ -39,6 +40,12 @@ def bench(
         fail(f"--receiver must be standalone, dgps or urban, got {receiver!r}")
     if dataset is not None and not dataset.is_dir():
         fail(f"--dataset: {dataset} is not a folder")
+    try:
+        seed_list = tuple(int(x) for x in seeds.split(",")) if seeds else ()
+    except ValueError:
+        fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
+    if seed_list and not suite:
+        fail("--seeds goes with --suite")
     try:
         extents = tuple(float(x) for x in sweep.split(",")) if sweep else ()
     except ValueError:
@@ -60,7 +67,10 @@ def bench(
             bar.update(tasks[label], completed=k, total=n, state=state)
 
         try:
-            if suite:
+            if seed_list:
+                by_seed = {s: bench_suite(cfg, out / f"seed_{s}", n_frames=frames, seed=s, fps=fps, ablation=ablation,
+                                          progress=progress, receiver=receiver) for s in seed_list}
+            elif suite:
                 figs = bench_suite(cfg, out, n_frames=frames, seed=seed, fps=fps, ablation=ablation, progress=progress,
                                    receiver=receiver)
             else:
@@ -68,5 +78,10 @@ def bench(
                                    ablation=ablation, sweep_extents_m=extents, progress=progress, receiver=receiver)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
-    typer.echo(suite_table(figs) if suite else markdown_summary(fig))  # plain: Markdown tables must not wrap
+    if seed_list:  # plain: Markdown tables must not wrap
+        table = seeds_table(by_seed)
+        (out / "seeds.md").write_text("# Benchmark suite over seeds: 3D error after the GNSS loss, mean [m]\n\n" + table)
+        typer.echo(table)
+    else:
+        typer.echo(suite_table(figs) if suite else markdown_summary(fig))
     typer.echo(f"Outputs in {out}/")

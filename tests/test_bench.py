@@ -147,6 +147,24 @@ def test_cli_rejects_bad_arguments(tmp_path):
     assert r.exit_code == 2 and "at least 500 m" in r.output
     r = runner.invoke(app, ["bench", "--dataset", str(tmp_path / "missing")])
     assert r.exit_code == 2 and "is not a folder" in r.output
+    r = runner.invoke(app, ["bench", "--suite", "--seeds", "0,one"])
+    assert r.exit_code == 2 and "comma-separated integers" in r.output
+    r = runner.invoke(app, ["bench", "--scenario", "nominal", "--seeds", "0,1"])
+    assert r.exit_code == 2 and "goes with --suite" in r.output
+
+
+def test_seeds_table_counts_runs_without_fixes_and_summarises_the_rest():
+    from companion.bench import seeds_table
+
+    def fig(name, mean, viol=0.0):
+        return {"scenario": name, "after_takeover": {"global_error_m": {"mean": mean}, "integrity_violation_ratio": viol}}
+
+    table = seeds_table({0: [fig("nominal", 0.5), fig("fast", None)],
+                         1: [fig("nominal", 1.5, 0.02), fig("fast", 3.0)],
+                         2: [fig("nominal", 0.7), fig("fast", None)]})
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in table.splitlines()[2:]}
+    assert rows["nominal"] == ["0.50", "1.50", "0.70", "3 of 3", "0.90 / 0.70", "0.020"]
+    assert rows["fast"] == ["no fix", "3.00", "no fix", "1 of 3", "3.00 / 3.00", "0.000"]
 
 
 @pytest.mark.slow
