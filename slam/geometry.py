@@ -174,11 +174,19 @@ def triangulate(K: np.ndarray, T1: np.ndarray, T2: np.ndarray, uv1: np.ndarray, 
         proj, z = project(K, T, p)
         good &= z > 0
         good &= np.linalg.norm(proj - uv, axis=1) < max_reproj_px
-    c1, c2 = camera_center(T1), camera_center(T2)
-    r1, r2 = p - c1, p - c2
-    cosang = (r1 * r2).sum(1) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1) + 1e-12)
-    good &= cosang < np.cos(np.deg2rad(min_parallax_deg))
+    good &= parallax_deg(p, camera_center(T1), camera_center(T2)) > min_parallax_deg
     return p, good
+
+
+def parallax_deg(p: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Angle (deg) at each point p (N,3) between its rays from c1 and from c2 ((3,) or (N,3) each);
+    0 where either ray has zero length. A point's depth error grows as 1/parallax."""
+    r1, r2 = p - c1, p - c2
+    n1, n2 = np.linalg.norm(r1, axis=1), np.linalg.norm(r2, axis=1)
+    ok = (n1 > 0) & (n2 > 0)
+    out = np.zeros(len(p))
+    out[ok] = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", r1[ok], r2[ok]) / (n1[ok] * n2[ok]), -1.0, 1.0)))
+    return out
 
 
 @dataclass
@@ -261,7 +269,7 @@ def initialize_two_view(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, min_poi
     cos_distinct = np.cos(np.deg2rad(distinct_deg))
     if any(n >= ambiguity_ratio * n_best and init.T_cam2_cam1[:3, 3] @ t_best < cos_distinct for n, _, init in scored):
         return None
-    if np.median(_parallax_deg(best.points_cam1[best.good], camera_center(best.T_cam2_cam1))) < min_median_parallax_deg:
+    if np.median(parallax_deg(best.points_cam1[best.good], np.zeros(3), camera_center(best.T_cam2_cam1))) < min_median_parallax_deg:
         return None
     if rotation_residual_px(K, uv1[epipolar_best], uv2[epipolar_best]) < min_translation_flow_px:
         return None
@@ -278,10 +286,3 @@ def rotation_residual_px(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> flo
                                     rays1 / np.linalg.norm(rays1, axis=1, keepdims=True))
     x = rays1 @ (K @ rot.as_matrix()).T
     return float(np.median(np.linalg.norm(x[:, :2] / x[:, 2:] - uv2, axis=1)))
-
-
-def _parallax_deg(p: np.ndarray, c2: np.ndarray) -> np.ndarray:
-    """Angle at each point p between the rays from the origin (camera 1) and from c2."""
-    r1 = p / np.linalg.norm(p, axis=1, keepdims=True)
-    r2 = (p - c2) / np.linalg.norm(p - c2, axis=1, keepdims=True)
-    return np.degrees(np.arccos(np.clip((r1 * r2).sum(1), -1.0, 1.0)))

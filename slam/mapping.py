@@ -16,7 +16,7 @@ import numpy as np
 
 from slam.ba import BAProblem, BAResult, ba_worker, bundle_adjust
 from slam.config import SlamConfig
-from slam.geometry import correct_pose_by_sim3, ransac_sim3, triangulate
+from slam.geometry import correct_pose_by_sim3, parallax_deg, ransac_sim3, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import match_bf
 from slam.place import PlaceIndex, place_index_of
@@ -125,13 +125,7 @@ def point_parallax_deg(m: SlamMap, pids: list[int]) -> np.ndarray:
         obs = [i for i in m.points[p].obs if i in centers]
         if len(obs) >= 2:
             A[k], B[k] = centers[min(obs)], centers[max(obs)]
-    ra, rb = P - A, P - B
-    na, nb = np.linalg.norm(ra, axis=1), np.linalg.norm(rb, axis=1)
-    ok = (na > 0) & (nb > 0)
-    out = np.zeros(len(pids))
-    cos = np.einsum("ij,ij->i", ra[ok], rb[ok]) / (na[ok] * nb[ok])
-    out[ok] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return out
+    return parallax_deg(P, A, B)
 
 
 TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
