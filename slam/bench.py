@@ -554,16 +554,16 @@ def prior_main(seq: Sequence, base: SlamConfig, a: argparse.Namespace) -> None:
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
 
 
-def start_frame(scenario: str, seed: int, fps: float | None, start_s: str) -> int:
-    """First frame of a run: ``start_s`` seconds of flight, or 'turn': 10 s before the first turn
-    (companion.bench.bench_window_s, the pipeline benchmark's window)."""
+def start_frame(scenario: str, seed: int, fps: float | None, start_s: str, n_frames: int) -> int:
+    """First frame of a run of n_frames: ``start_s`` seconds of flight, or 'turn': the start of
+    the pipeline benchmark's window (companion.bench.bench_window_s: 10 s before the first turn)."""
     from companion.sim import make_scenario
 
     sc = make_scenario(scenario, seed=seed, **({"fps": fps} if fps else {}))
     if start_s == "turn":
-        from companion.bench import first_turn_s  # the benchmark, not slam/, uses the pipeline's window
+        from companion.bench import bench_window_s  # the benchmark, not slam/, uses the pipeline's window
 
-        t = max(0.0, first_turn_s(sc) - 10.0)
+        t = bench_window_s(sc, n_frames)[0]
     else:
         t = float(start_s)
     return int(round(t * sc.fps))
@@ -602,7 +602,7 @@ def main(argv: list[str] | None = None) -> None:
         memory_main(a)
         return
     t0 = time.perf_counter()
-    start = start_frame(a.scenario, a.seed, a.camera_fps, a.start_s)
+    start = start_frame(a.scenario, a.seed, a.camera_fps, a.start_s, a.frames)
     seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, start=start, fps=a.camera_fps)
     print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' from frame {start} in {time.perf_counter() - t0:.0f} s")
     base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
