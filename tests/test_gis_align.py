@@ -253,7 +253,7 @@ def test_fine_refuses_vague_prior_and_prior_disagreement(city):
     assert reg.jump_m > 2.0  # the data did find the right place; the prior's claim is what fails
 
 
-def test_update_kalman_and_covariance_intersection():
+def test_update_is_the_kalman_update():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(7, 7))
     P = A @ A.T + np.eye(7)
@@ -261,16 +261,36 @@ def test_update_kalman_and_covariance_intersection():
     M[1:4, :2] = rng.normal(size=(3, 2))
     R = np.diag([0.01, 0.5, 0.5, 0.5, 1e-4])
     z = rng.normal(size=5)
-    x_k, P_k, nis = _update(z, M, R, P, correlated=False)
+    x, Pp, nis = _update(z, M, R, P)
     S = M @ P @ M.T + R
     assert nis == pytest.approx(float(z @ np.linalg.solve(S, z)))
-    assert np.allclose(x_k, P @ M.T @ np.linalg.solve(S, z))
-    x_ci, P_ci, _ = _update(z, M, R, P, correlated=True)
-    # covariance intersection never claims more than the independent (Kalman) update
-    assert np.linalg.eigvalsh(P_ci - P_k)[0] > -1e-9
-    assert np.trace(P_ci[3:6, 3:6]) <= np.trace(P[3:6, 3:6]) + 1e-9
-    assert _update(np.zeros(5), M, R, P, correlated=False)[2] == 0.0
+    assert np.allclose(x, P @ M.T @ np.linalg.solve(S, z))
+    K = P @ M.T @ np.linalg.inv(S)
+    assert np.allclose(Pp, P - K @ S @ K.T)  # Joseph-free form, symmetric
+    assert np.linalg.eigvalsh(P - Pp)[0] > -1e-9  # never less certain than the prior
+    assert _update(np.zeros(5), M, R, P)[2] == 0.0
 
+
+@pytest.mark.parametrize("drift_per_100m, recovered", [(0.02, True), (0.0, False)])
+def test_fine_prior_scale_drifts_with_distance(city, drift_per_100m, recovered):
+    """A FINE prior made 60 m back claims its scale to 0.4 % but the map's scale has since drifted
+    2 % (the demo flight's case): with the scale's drift over those 60 m in the prior the new
+    registration takes the scale from the data; without it the prior's claim wins."""
+    c0, c1 = np.array([-40.0, -10.0, 0.0]), np.array([20.0, -10.0, 0.0])
+    cam0, cam1 = c0 + [0.0, 0.0, 60.0], c1 + [0.0, 0.0, 60.0]
+    dT = compose(Sim3(1.0, np.eye(3), cam0), compose(Sim3(1.02, np.eye(3), np.zeros(3)), Sim3(1.0, np.eye(3), -cam0)))
+    info = np.diag(np.r_[np.full(3, np.radians(0.3) ** -2), np.full(3, 0.3 ** -2)])
+    prior = Alignment(compose(enu_sim3(ORIGIN), compose(dT, T_ENU_SLAM)), AlignmentSource.FINE, 0.0, 0, info, 0.3,
+                      center_slam=_slam(cam0), scale_sigma=0.004)
+    p_slam = _slam(slam_like_cloud(city, c1, 60, 3000, noise_m=0.05, seed=2))
+    cfg = AlignmentConfig(slam_scale_drift_per_100m=drift_per_100m)
+    reg = FineTuner(city, cfg).register(p_slam, prior, 1.0, 0, center_slam=_slam(cam1))
+    assert reg.reason == "ok", reg.reason
+    scale_err = reg.alignment.T_ecef_slam.scale / T_ECEF_SLAM.scale - 1.0
+    assert (abs(scale_err) < 0.005) == recovered, scale_err
+    if recovered:
+        e = np.linalg.norm(reg.alignment.T_ecef_slam.apply(_slam(cam1)) - T_ECEF_SLAM.apply(_slam(cam1)))
+        assert e <= 3 * reg.alignment.sigma_m
 
 def _register_at(tuner, city, c_ground, seed=2):
     """A clean SLAM-like cloud around c_ground registered with a GNSS-like prior 0.8 m off at the

@@ -38,11 +38,17 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   largest disagreement of the restarts (``spread_m``) is added as a translation 1-σ. On the real
   clouds the optimum moved 0.3–3 m between restarts (stale model: stable wrong optima 4 m from
   truth were caught only by 3 m restarts, not by 2 m ones); the Hessian alone reported 0.05–0.2 m.
-- Update: prior (propagated to the crop centre with its lever arm, SLAM drift and scale σ; GNSS
-  priors also with model_sigma_m) and measurement z = M x + v: Kalman update
-  x = K z, P⁺ = (I − K M) P. A prior that is itself a fine registration of largely the same map
-  points is correlated with the new one by an unknown amount: covariance intersection
-  (Julier & Uhlmann 1997), ω minimising the posterior position trace, instead.
+- Update: prior (propagated to the crop centre with its lever arm, SLAM drift, scale σ and the
+  scale's own drift, ``slam_scale_drift_per_100m`` × distance; GNSS priors also with model_sigma_m)
+  and measurement z = M x + v: Kalman update x = K z, P⁺ = (I − K M) P, for every prior.
+  Covariance intersection (Julier & Uhlmann 1997, one ω minimising the position trace) was used
+  for FINE priors, since consecutive crops share map points; measured on the demo flight it chose
+  ω ≈ 0.95 every time (the measurement's translation σ is 1.6–6 m from the basin spread) and so
+  discarded the ICP's scale too: measured scale changes of +1.5 … +2.5 % (σ 0.54 %) moved the
+  alignment by +0.04 … +0.07 %, and the error grew through the outage. The scale drift term is the
+  process noise that makes a later registration informative; the shared map points' systematic
+  error is in R (SYS_OFFSET_FRACTION, RANDOM_INFLATION). Integrity measured with it: 0 fixes
+  beyond 3σ over the 10 bench flights and 4 demo flights (docs/BENCHMARKS.md).
 - Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE,
   degeneracy of the data alone (Eq. 8–9 along its weakest position / rotation / scale direction:
   a single facade is refused, the prior does not rescue it; and restarts that slide more than
@@ -301,7 +307,7 @@ class FineTuner:
         if prior is None:  # the registration stands alone (7 DoF: M = I)
             x_post, P_post = _vec(icp.T), R
         else:
-            x_post, P_post, nis = _update(z, M, R, prior, correlated=initial.source is AlignmentSource.FINE)
+            x_post, P_post, nis = _update(z, M, R, prior)
         sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
@@ -357,7 +363,8 @@ class FineTuner:
         if initial.source is AlignmentSource.GNSS:  # GNSS vs the model: the model's georeference error
             iso += cfg.model_sigma_m**2
         cov[3:6, 3:6] += iso * np.eye(3)
-        cov[6, 6] = initial.scale_sigma**2 if initial.scale_sigma > 0 else UNKNOWN_VAR
+        scale_drift = cfg.slam_scale_drift_per_100m * dist / 100.0  # the map's scale drifts as it grows
+        cov[6, 6] = initial.scale_sigma**2 + scale_drift**2 if initial.scale_sigma > 0 else UNKNOWN_VAR
         return cov
 
     def _R_enuC_enuO(self, c_enu: np.ndarray) -> np.ndarray:
@@ -432,30 +439,14 @@ def _measurement_matrix(free: tuple[int, ...], centroid: np.ndarray) -> np.ndarr
     return M
 
 
-def _update(z: np.ndarray, M: np.ndarray, R: np.ndarray, P: np.ndarray, correlated: bool):
-    """Posterior of the increment x (prior N(0, P)) given z = M x + v, v ~ N(0, R).
-
-    Independent prior: Kalman update. A prior that is an earlier registration of largely the same
-    map points (correlated by an unknown amount): covariance intersection (Julier & Uhlmann 1997),
-    P⁺⁻¹ = ω P⁻¹ + (1 − ω) Mᵀ R⁻¹ M, ω minimising the posterior position trace.
-    Returns (x⁺, P⁺, innovation χ² = zᵀ (M P Mᵀ + R)⁻¹ z)."""
+def _update(z: np.ndarray, M: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Kalman update of the increment x (prior N(0, P)) given z = M x + v, v ~ N(0, R): x⁺ = K z,
+    P⁺ = (I − K M) P. Returns (x⁺, P⁺, innovation χ² = zᵀ (M P Mᵀ + R)⁻¹ z)."""
     S = M @ P @ M.T + R
     nis = float(z @ np.linalg.solve(S, z))
-    if not correlated:
-        K = P @ M.T @ np.linalg.inv(S)
-        x = K @ z
-        Pp = (np.eye(len(P)) - K @ M) @ P
-    else:
-        Pi, Ri = np.linalg.inv(P), np.linalg.inv(R)
-        best = None
-        for om in np.linspace(0.05, 0.95, 19):
-            C = np.linalg.inv(om * Pi + (1 - om) * M.T @ Ri @ M)
-            tr = float(np.trace(C[3:6, 3:6]))
-            if best is None or tr < best[0]:
-                best = (tr, om, C)
-        _, om, Pp = best
-        x = Pp @ ((1 - om) * M.T @ Ri @ z)
-    return x, 0.5 * (Pp + Pp.T), nis
+    K = P @ M.T @ np.linalg.inv(S)
+    Pp = (np.eye(len(P)) - K @ M) @ P
+    return K @ z, 0.5 * (Pp + Pp.T), nis
 
 
 def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float,
