@@ -48,7 +48,8 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   alignment by +0.04 … +0.07 %, and the error grew through the outage. The scale drift term is the
   process noise that makes a later registration informative; the shared map points' systematic
   error is in R (SYS_OFFSET_FRACTION, RANDOM_INFLATION). Integrity measured with it: 0 fixes
-  beyond 3σ over the 10 bench flights and 4 demo flights (docs/BENCHMARKS.md).
+  beyond 3σ in the 10 bench flights and in 5 of 6 demo flights; demo seed 4 breaks it with and
+  without this change (SLAM's scale breaks in a turn after the loss; docs/BENCHMARKS.md).
 - Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE,
   degeneracy of the data alone (Eq. 8–9 along its weakest position / rotation / scale direction:
   a single facade is refused, the prior does not rescue it; and restarts that slide more than
