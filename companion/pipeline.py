@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
-from gis.align.fine import FineTuner
+from gis.align.fine import SCALE_MISMATCH_REASON, FineTuner
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
 from gis.types import Alignment, AlignmentSource, GlobalFix
@@ -333,11 +333,12 @@ def _adopt_tuner(tuner: FineTuner) -> None:
     _TUNER = tuner
 
 
-def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float) -> tuple[Alignment | None, str, float, float]:
+def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float,
+                        camera_h_ell_m: float | None = None) -> tuple[Alignment | None, str, float, float]:
     """(alignment or None, reason, wall ms, CPU ms of the worker process) of one registration."""
     t0, c0 = time.perf_counter(), time.process_time()
     reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
-                          map_id=initial.map_id)
+                          map_id=initial.map_id, camera_h_ell_m=camera_h_ell_m)
     return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
@@ -363,11 +364,12 @@ class FineTuneWorker:
         self._lock = threading.Lock()
         self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
-    def submit(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray, t_s: float) -> bool:
+    def submit(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray, t_s: float,
+               camera_h_ell_m: float | None = None) -> bool:
         with self._lock:
             if self.busy.is_set():
                 return False
-            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s)
+            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m)
             self.busy.set()
         fut.add_done_callback(self._done)
         return True
@@ -394,6 +396,7 @@ class FineTuneWorker:
         self._proc.close()
 
 
+BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
@@ -420,6 +423,7 @@ class Localizer:
         self._lock = threading.Lock()
         self._frames_since_tune = 0
         self._frames_since_boot = 0
+        self._baro_offset_m: float | None = None  # ellipsoidal height − barometric altitude (learned from GNSS)
         self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
         self.worker = FineTuneWorker(tuner, self._on_finetune) if tuner is not None else None
@@ -463,6 +467,11 @@ class Localizer:
         t = self._last_pose.t_s if self._last_pose else 0.0
         if alignment is None:
             self.events.append((t, f"fine-tuning rejected: {reason} ({wall_ms:.0f} ms)"))
+            if reason.startswith(SCALE_MISMATCH_REASON):
+                # The map under the camera is not at the alignment's scale: fixes would drift
+                # off at speed × mismatch while claiming the alignment's σ. Send nothing.
+                self._drop_alignment(t, "alignment dropped, fixes withheld: " + reason)
+                self.globalizer.clear_alignment()
             return
         with self._lock:
             current = self.alignment
@@ -503,6 +512,7 @@ class Localizer:
                         usable = self.gnss_check.update(pair.t_s, (pair.R_ecef_enu.T @ nu_ecef)[:2])
                 if usable and item.gnss_trusted:
                     self.bootstrap.append(pair)
+                    self._learn_baro_offset(pair, item.prior)
             self._frames_since_boot += 1
             if (item.gnss_trusted and self.bootstrap.ready()
                     and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
@@ -524,13 +534,29 @@ class Localizer:
                 if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
                     points = points[snapshot.parallax_deg >= self.min_parallax_deg]
                 if len(points) >= self.min_points and self.worker.submit(
-                        points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s):
+                        points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, self._camera_h_ell_m(item.prior)):
                     self._frames_since_tune = 0
                 else:  # too few well-triangulated points: retry soon, not every frame (a
                     # snapshot of a big map costs tens of ms on this, the tracking, thread)
                     self._frames_since_tune = every - RETRY_FRAMES
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
+
+    def _learn_baro_offset(self, pair: GnssPair, prior: AttitudePrior | None) -> None:
+        """Ellipsoidal height − barometric altitude, averaged over trusted GNSS pairs (exponential,
+        BARO_OFFSET_GAIN per pair: ~10 s at 5 Hz). The barometer drifts ~0.02 m/√s, so the offset
+        stays good to decimetres for minutes after GNSS is lost."""
+        if prior is None or prior.baro_alt_m is None or not math.isfinite(prior.baro_alt_m) or abs(prior.t_s - pair.t_s) > 0.2:
+            return
+        off = float(ecef_to_geodetic(pair.p_ecef)[2]) - prior.baro_alt_m
+        self._baro_offset_m = off if self._baro_offset_m is None else self._baro_offset_m + BARO_OFFSET_GAIN * (off - self._baro_offset_m)
+
+    def _camera_h_ell_m(self, prior: AttitudePrior | None) -> float | None:
+        """The camera's ellipsoidal height from the barometer (the camera-to-antenna lever ignored:
+        centimetres), or None without a barometer or an offset learned from GNSS."""
+        if prior is None or prior.baro_alt_m is None or self._baro_offset_m is None or not math.isfinite(prior.baro_alt_m):
+            return None
+        return prior.baro_alt_m + self._baro_offset_m
 
     def _sigma_here_m(self, a: Alignment, c_slam: np.ndarray) -> float:
         """Rough 1-σ of a fix at SLAM position c under alignment a: its own σ plus SLAM drift over

@@ -34,7 +34,14 @@ TICK_S = 0.05
 CONFIRM_RESEND_S = 1.0   # source-switch commands are re-sent until the autopilot confirms them
 CONFIRM_TRIES = 5
 LATENCY_SAMPLES = 10000
+BARO_MAX_AGE_S = 0.5     # an ALTITUDE older than this is not attached to the attitude
 
+
+
+def pressure_altitude_m(press_abs_hpa: float) -> float:
+    """Pressure altitude (ICAO standard atmosphere, troposphere) of a static pressure in hPa. Its
+    offset from the true height varies with the weather; the pipeline learns it from GNSS."""
+    return 44330.77 * (1.0 - (press_abs_hpa / 1013.25) ** 0.190263)
 
 @dataclass
 class BridgeStats:
@@ -73,6 +80,7 @@ class Bridge:
         self._origin: LocalFrame | None = None
         self._q_ned_body: np.ndarray | None = None
         self._attitude: VehicleAttitude | None = None
+        self._baro: tuple[float, float] | None = None  # (bridge clock s, ALTITUDE.altitude_monotonic m)
         self._last_emit_s = -math.inf
         self._last_fix_s: float | None = None   # clock time of the last fix we wrote
         self._last_fix: GlobalFix | None = None
@@ -231,7 +239,16 @@ class Bridge:
                 self._q_ned_body = _q_from_euler(msg.roll, msg.pitch, msg.yaw)
                 off = self._stats.boot_offset_s  # stamp with the autopilot's own time when known
                 t_att = msg.time_boot_ms / 1000.0 + off if off is not None else now
-                self._attitude = VehicleAttitude(min(t_att, now), msg.roll, msg.pitch, msg.yaw)
+                baro = self._baro[1] if self._baro is not None and now - self._baro[0] <= BARO_MAX_AGE_S else None
+                self._attitude = VehicleAttitude(min(t_att, now), msg.roll, msg.pitch, msg.yaw, baro)
+        elif t == "ALTITUDE":  # PX4: altitude_monotonic is the barometric altitude
+            if math.isfinite(msg.altitude_monotonic):
+                with self._lock:
+                    self._baro = (now, float(msg.altitude_monotonic))
+        elif t == "SCALED_PRESSURE":  # ArduPilot's barometer (it does not send ALTITUDE)
+            if math.isfinite(msg.press_abs) and msg.press_abs > 0:
+                with self._lock:
+                    self._baro = (now, pressure_altitude_m(msg.press_abs))
         elif t == "GPS_GLOBAL_ORIGIN":
             self._on_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude / 1000.0)
         elif t == "SYSTEM_TIME":
@@ -286,8 +303,10 @@ class Bridge:
                    mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
         if self.cfg.autopilot == "ardupilot":
             streams[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = 2.0
+            streams[mavlink.MAVLINK_MSG_ID_SCALED_PRESSURE] = 5.0   # the barometer
         else:
             streams[mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS] = 2.0
+            streams[mavlink.MAVLINK_MSG_ID_ALTITUDE] = 5.0          # altitude_monotonic: the barometer
         for msg_id, hz in streams.items():
             self._command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us(hz))
         self._command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)

@@ -54,6 +54,11 @@ EXTNAV_MIN_GAP_S = 0.02         # ArduPilot: at most one ExternalNav sample per 
 SOURCE_FRESH_S = 0.5            # a fused sample older than this no longer drives the estimate
 
 
+def pressure_hpa_at(h_m: float) -> float:
+    """Static pressure of the ICAO standard atmosphere at pressure altitude h_m (troposphere)."""
+    return 1013.25 * (1.0 - h_m / 44330.77) ** (1.0 / 0.190263)
+
+
 @dataclass(frozen=True)
 class SimEstimate:
     t_s: float
@@ -106,6 +111,12 @@ class SimAutopilot:
         self._glitch = False
         self._att = (0.0, 0.0, 0.0)
         self._truth: _Pos | None = None
+        # barometer (ALTITUDE.altitude_monotonic): altitude since the first truth, plus a random-walk
+        # drift and white noise (companion/sim/autopilot_signals.py's model: 0.02 m/√s, 0.15 m)
+        self._baro_rng = np.random.default_rng(0)
+        self._baro_zero_m: float | None = None
+        self._baro_drift_m = 0.0
+        self._baro_last_s: float | None = None
         self.origin: _Pos | None = None
         self._mgps: dict | None = None          # last GPS_INPUT fields (ArduPilot MAVLink GPS)
         self._mgps_times: deque = deque(maxlen=10)
@@ -151,6 +162,15 @@ class SimAutopilot:
 
     def feed_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float) -> None:
         self._att = (roll_rad, pitch_rad, yaw_rad)
+
+    def _baro(self, now: float, alt_msl_m: float) -> float:
+        """Barometric altitude since the first truth: drifting, noisy (call with the lock held)."""
+        if self._baro_zero_m is None:
+            self._baro_zero_m = alt_msl_m
+        dt = max(0.0, now - self._baro_last_s) if self._baro_last_s is not None else 0.0
+        self._baro_last_s = now
+        self._baro_drift_m += 0.02 * math.sqrt(dt) * float(self._baro_rng.standard_normal())
+        return alt_msl_m - self._baro_zero_m + self._baro_drift_m + 0.15 * float(self._baro_rng.standard_normal())
 
     def set_truth(self, lat_deg: float, lon_deg: float, alt_msl_m: float) -> None:
         """True vehicle position: drives the barometric ALTITUDE stream."""
@@ -485,9 +505,14 @@ class SimAutopilot:
                 out.append(mav.system_time_encode(int(time.time() * 1e6), self._boot_ms(now)))
             if self._due(mavlink.MAVLINK_MSG_ID_ATTITUDE, now):
                 out.append(mav.attitude_encode(self._boot_ms(now), *self._att, 0.0, 0.0, 0.0))
-            if self._due(mavlink.MAVLINK_MSG_ID_ALTITUDE, now) and self._truth is not None:
+            # the barometer: PX4 streams ALTITUDE (altitude_monotonic = baro altitude); ArduPilot does not
+            # implement ALTITUDE, its barometer comes as SCALED_PRESSURE
+            if self.personality == "px4" and self._due(mavlink.MAVLINK_MSG_ID_ALTITUDE, now) and self._truth is not None:
                 a = self._truth.alt_msl_m
-                out.append(mav.altitude_encode(int(now * 1e6), a, a, math.nan, math.nan, math.nan, math.nan))
+                out.append(mav.altitude_encode(int(now * 1e6), self._baro(now, a), a, math.nan, math.nan, math.nan, math.nan))
+            if self.personality == "ardupilot" and self._due(mavlink.MAVLINK_MSG_ID_SCALED_PRESSURE, now) and self._truth is not None:
+                h = self._baro(now, self._truth.alt_msl_m) + self._baro_zero_m  # pressure altitude ≈ MSL
+                out.append(mav.scaled_pressure_encode(self._boot_ms(now), pressure_hpa_at(h), 0.0, 2000))
             if self._due(mavlink.MAVLINK_MSG_ID_GPS2_RAW, now):  # the MAVLink GPS instance, fix 0 until fed
                 m = self._mgps or {"lat": 0.0, "lon": 0.0, "alt": 0.0, "hdop": 655.35, "sats": 0}
                 fix, _ = self._mgps_usable(now)

@@ -69,9 +69,12 @@ class GnssStatus:
 @dataclass(frozen=True)
 class VehicleAttitude:
     """The autopilot's attitude (ATTITUDE): body FRD in the local NED frame, radians; t_s: when we
-    received it (bridge clock)."""
+    received it (bridge clock). baro_alt_m: the barometric altitude, metres, from the latest
+    ALTITUDE.altitude_monotonic (PX4) or SCALED_PRESSURE (ArduPilot, as pressure altitude) received
+    within 0.5 s, else None; only its changes are meaningful (the offset is learned from GNSS)."""
 
     t_s: float
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
+    baro_alt_m: float | None = None

@@ -272,3 +272,30 @@ def test_alternative_outputs_take_over_on_gnss_loss(rigs, personality, output, s
     rig.fly(1.0, gnss="lost")
     assert rig.sim.estimate().source == source and rig.est_error_m() < 1.5
     assert rig.sim.received().rejections == [] or all("gap" in r for _, _, r in rig.sim.received().rejections)
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_bridge_attaches_the_barometric_altitude_to_the_attitude(rigs, personality):
+    """The barometer (PX4: ALTITUDE.altitude_monotonic; ArduPilot: SCALED_PRESSURE as pressure
+    altitude) travels with the attitude the pipeline reads; the simulated barometer is noisy
+    (0.15 m) and drifts, so only its change is checked."""
+    rig = rigs(personality)
+    rig.sim.feed_attitude(0.0, 0.0, 0.0)
+
+    def baro(t_wait_s):
+        end = time.monotonic() + t_wait_s
+        vals = []
+        while time.monotonic() < end:
+            a = rig.bridge.attitude(max_age_s=0.5)
+            if a is not None and a.baro_alt_m is not None:
+                vals.append(a.baro_alt_m)
+            time.sleep(0.05)
+        return vals
+
+    rig.sim.set_truth(47.0, 8.0, 500.0)
+    before = baro(2.0)
+    rig.sim.set_truth(47.0, 8.0, 510.0)
+    time.sleep(0.5)
+    after = baro(1.5)
+    assert before and after, "no ALTITUDE reached the attitude"
+    assert 9.0 < sum(after) / len(after) - sum(before) / len(before) < 11.0

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import FineTuner, _update, enu_sim3
+from gis.align.fine import SCALE_MISMATCH_REASON, FineTuner, _update, enu_sim3
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -338,3 +338,23 @@ def test_registration_near_the_crop_border_recrops(city):
     assert tuner._crops.n_built == 2 and new is not old
     assert new.box[0] * new.tile_m <= c3[0] - half and c3[0] + half <= (new.box[2] + 1) * new.tile_m
     _same_registration(reg, _register_at(FineTuner(city), city, c3))
+
+
+@pytest.mark.parametrize("shrink, refused", [(1.0, False), (1.08, True)])
+def test_barometer_refuses_a_map_whose_scale_broke_under_the_camera(city, shrink, refused):
+    """Demo seed 4's failure: the map under the camera shrank 8 % in a turn while the alignment kept
+    the old scale. The barometric height over the model then disagrees with the SLAM height over
+    the points near nadir (ratio 1.08): refused with SCALE_MISMATCH_REASON; the same map unshrunk
+    passes with a ratio of 1."""
+    c_ground = np.array([20.0, -10.0, 0.0])
+    cam = c_ground + np.array([0.0, 0.0, 60.0])
+    p = slam_like_cloud(city, c_ground, 60, 3000, noise_m=0.05, seed=2)
+    p = cam + (p - cam) / shrink
+    h_cam = float(ecef_to_geodetic(enu_sim3(ORIGIN).apply(cam[None]))[2][0])
+    reg = FineTuner(city).register(_slam(p), _prior_about(cam, (0.3, -0.2, 0.1)), 1.0, 0, center_slam=_slam(cam),
+                                   camera_h_ell_m=h_cam + 0.3)  # barometer 0.3 m off
+    assert reg.scale_ratio == pytest.approx(shrink, abs=0.015)
+    if refused:
+        assert reg.alignment is None and reg.reason.startswith(SCALE_MISMATCH_REASON), reg.reason
+    else:
+        assert reg.reason == "ok", reg.reason

@@ -82,6 +82,7 @@ model's lazily built grid index (built once, eagerly, in the constructor).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -93,7 +94,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from gis.config import AlignmentConfig
-from gis.geodesy import LocalFrame, ecef_to_geodetic
+from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.model import GisModel
 from gis.sim3 import Sim3, compose
 from gis.types import Alignment, AlignmentSource
@@ -117,6 +118,13 @@ ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton ste
 MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
 TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
 MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
+# Scale check against the barometer (beyond the papers; docs/BENCHMARKS.md "Fine-tuning update"):
+SCALE_MISMATCH_REASON = "SLAM scale under the camera disagrees with the barometer"
+NADIR_RADIUS_M = 30.0          # SLAM points within this horizontal distance of the camera are tested
+NADIR_MIN_POINTS = 20          # fewer: no test
+SURFACE_RADIUS_M = 1.5         # the model surface under a point: level model points this close (horizontally)
+LEVEL_NORMAL_Z = 0.8           # a model point on a level surface (ground, roof): |normal up-component| above this
+MAX_SCALE_MISMATCH = 0.06      # |k − 1| tolerated on top of 3 standard errors (demo seeds 0/4/5: good registrations 0.946–1.022, the scale break 1.080–1.084)
 
 
 @dataclass(frozen=True)
@@ -137,6 +145,7 @@ class Registration:
     spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check)
     sigma_mad_m: float = 0.0  # robust residual scale of all matched points
     n_dof: int = 7            # degrees of freedom the ICP solved
+    scale_ratio: float = float("nan")  # barometric / SLAM height over the ground under the camera (nan: not tested)
 
 
 @dataclass(frozen=True)
@@ -167,6 +176,7 @@ class _Crop:
     points: np.ndarray
     normals: np.ndarray
     tree: cKDTree
+    tree_en: cKDTree                 # the same points, horizontal coordinates only
 
     def covers(self, box: tuple[int, int, int, int]) -> bool:
         i0, j0, i1, j1 = self.box
@@ -213,7 +223,7 @@ class _CropCache:
                 self._tiles.popitem(last=False)
             pts = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3))
             nrm = np.concatenate([n for _, n in parts]) if parts else np.zeros((0, 3))
-            self._last = _Crop(box, self.tile_m, pts, nrm, cKDTree(pts, balanced_tree=False))
+            self._last = _Crop(box, self.tile_m, pts, nrm, cKDTree(pts, balanced_tree=False), cKDTree(pts[:, :2], balanced_tree=False))
             self.n_built += 1
             return self._last
 
@@ -251,7 +261,13 @@ class FineTuner:
         return reg.alignment
 
     def register(self, points_slam: np.ndarray, initial: Alignment, t_s: float, reset_counter: int,
-                 center_slam: np.ndarray | None = None, map_id: int = 0) -> Registration:
+                 center_slam: np.ndarray | None = None, map_id: int = 0,
+                 camera_h_ell_m: float | None = None) -> Registration:
+        """One registration of the SLAM points to the model about the camera centre ``center_slam``
+        (module doc). camera_h_ell_m: the camera's ellipsoidal height from the barometer; with it,
+        the SLAM height of the camera over the points near its nadir is checked against the
+        barometric height over the model there (nadir_scale_ratio), and a map whose scale under the
+        camera differs from the alignment's is refused with SCALE_MISMATCH_REASON."""
         t0 = time.perf_counter()
         cfg = self.config
         pts = np.asarray(points_slam, float).reshape(-1, 3)
@@ -278,6 +294,15 @@ class FineTuner:
         n_tgt = int(np.sum(np.all(np.abs(crop.points[:, :2] - c[:2]) <= half, axis=1)))
         if n_tgt < cfg.min_points:
             return Registration(None, f"GIS crop holds only {n_tgt} points (outside the model?)", n_target=n_tgt)
+        k = float("nan")
+        if camera_h_ell_m is not None and math.isfinite(camera_h_ell_m):
+            lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c[None])[0])
+            up_baro = float(self._T_enu_ecef.apply(geodetic_to_ecef(float(lat), float(lon), camera_h_ell_m)[None])[0][2]) - c[2]
+            k, k_se, n_k = nadir_scale_ratio(src, crop, c, up_baro)
+            if math.isfinite(k) and abs(k - 1.0) > MAX_SCALE_MISMATCH + 3.0 * k_se:
+                return Registration(None, f"{SCALE_MISMATCH_REASON}: ratio {k:.3f} ± {k_se:.3f} over {n_k} points "
+                                          f"near nadir (tolerance {MAX_SCALE_MISMATCH + 3.0 * k_se:.3f})",
+                                    n_source=len(src), scale_ratio=k, wall_ms=1e3 * (time.perf_counter() - t0))
         # Correspondence distances never drop below the model's own point spacing (a sparse
         # model would otherwise lose true correspondences and report a low fitness).
         min_corr = 1.5 * crop.spacing_m(c, half)
@@ -313,7 +338,7 @@ class FineTuner:
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
                       n_target=n_tgt, used_fpfh=used_fpfh, nis=nis, spread_m=spread,
-                      sigma_mad_m=icp.sigma_mad_m, n_dof=len(free))
+                      sigma_mad_m=icp.sigma_mad_m, n_dof=len(free), scale_ratio=k)
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
         if not reason and spread > MULTISTART_M + cfg.max_jump_m:
@@ -390,6 +415,40 @@ class FineTuner:
         """Information of [rot, trans] (scale marginalised) in the ENU frame at the crop centre."""
         B = np.kron(np.eye(2), self._R_enuC_enuO(c_enu))
         return B @ np.linalg.inv(cov7[:6, :6]) @ B.T
+
+
+def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: float) -> tuple[float, float, int]:
+    """(k, standard error of k, points used): k = median over the SLAM points p_i within
+    NADIR_RADIUS_M (horizontally) of the camera of
+
+        k_i = (up_baro_m − (z_model(p_i) − c_z)) / (−p_i,z)
+
+    with src the points in ENU centred on the camera (the camera at 0), up_baro_m the barometric
+    camera height in the same coordinates, and z_model the height of the level model surface
+    (ground, roof: normal within ~37° of vertical) within SURFACE_RADIUS_M of p_i horizontally that
+    is nearest to p_i in height (points over walls only are skipped). k is the true
+    height of the camera over what it sees divided by the height the SLAM map and the alignment
+    give it: 1 when the map under the camera has the alignment's scale, 1.06 when it has shrunk
+    6 % (a scale break in a turn). A vertical shift of the alignment moves camera and points
+    together and leaves k alone. Written by hand: a ratio of two medians' worth of numbers.
+    Standard error: 1.4826·MAD/√n. (nan, nan, n) with fewer than NADIR_MIN_POINTS usable points."""
+    near = src[(np.hypot(src[:, 0], src[:, 1]) < NADIR_RADIUS_M) & (src[:, 2] < -1.0)]
+    if len(near) < NADIR_MIN_POINTS:
+        return float("nan"), float("nan"), len(near)
+    hits = crop.tree_en.query_ball_point(near[:, :2] + c[:2], SURFACE_RADIUS_M)
+    z_model = np.full(len(near), np.nan)
+    for i, h in enumerate(hits):  # the level surface (ground, roof) nearest in height; walls carry no height
+        h = np.asarray(h, int)
+        h = h[np.abs(crop.normals[h, 2]) > LEVEL_NORMAL_Z] if len(h) else h
+        if len(h):
+            z = crop.points[h, 2]
+            z_model[i] = z[np.argmin(np.abs(z - (near[i, 2] + c[2])))]
+    ok = np.isfinite(z_model)
+    if ok.sum() < NADIR_MIN_POINTS:
+        return float("nan"), float("nan"), int(ok.sum())
+    k_i = (up_baro_m - (z_model[ok] - c[2])) / (-near[ok, 2])
+    k = float(np.median(k_i))
+    return k, float(1.4826 * np.median(np.abs(k_i - k)) / np.sqrt(len(k_i))), int(len(k_i))
 
 
 def _sigmas(icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...] = ALL_DOF) -> tuple[float, float, float]:
