@@ -49,7 +49,13 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   process noise that makes a later registration informative; the shared map points' systematic
   error is in R (SYS_OFFSET_FRACTION, RANDOM_INFLATION). Integrity measured with it: 0 fixes
   beyond 3σ in the 10 bench flights and in 5 of 6 demo flights; demo seed 4 breaks it with and
-  without this change (SLAM's scale breaks in a turn after the loss; docs/BENCHMARKS.md).
+  without this change (SLAM's scale breaks in a turn after the loss; docs/BENCHMARKS.md), which is
+  what the barometer check below is for.
+- Barometer check (beyond the papers; with ``camera_h_ell_m``): before the ICP, the barometric
+  height of the camera over the level GIS surface under the SLAM points near nadir, divided by
+  their SLAM height under the alignment (nadir_scale_ratio), must be 1 within MAX_SCALE_MISMATCH
+  + 3 standard errors; else the registration is refused with SCALE_MISMATCH_REASON and the
+  pipeline withholds fixes (the map under the camera no longer has the alignment's scale).
 - Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE,
   degeneracy of the data alone (Eq. 8–9 along its weakest position / rotation / scale direction:
   a single facade is refused, the prior does not rescue it; and restarts that slide more than
