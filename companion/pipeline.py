@@ -396,6 +396,13 @@ class FineTuneWorker:
         self._proc.close()
 
 
+def _baro_m(prior: AttitudePrior | None) -> float | None:
+    """The prior's barometric altitude when it has a finite one, else None."""
+    if prior is None or prior.baro_alt_m is None or not math.isfinite(prior.baro_alt_m):
+        return None
+    return prior.baro_alt_m
+
+
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
@@ -546,17 +553,17 @@ class Localizer:
         """Ellipsoidal height − barometric altitude, averaged over trusted GNSS pairs (exponential,
         BARO_OFFSET_GAIN per pair: ~10 s at 5 Hz). The barometer drifts ~0.02 m/√s, so the offset
         stays good to decimetres for minutes after GNSS is lost."""
-        if prior is None or prior.baro_alt_m is None or not math.isfinite(prior.baro_alt_m) or abs(prior.t_s - pair.t_s) > 0.2:
+        baro = _baro_m(prior)
+        if baro is None or abs(prior.t_s - pair.t_s) > 0.2:
             return
-        off = float(ecef_to_geodetic(pair.p_ecef)[2]) - prior.baro_alt_m
+        off = float(ecef_to_geodetic(pair.p_ecef)[2]) - baro
         self._baro_offset_m = off if self._baro_offset_m is None else self._baro_offset_m + BARO_OFFSET_GAIN * (off - self._baro_offset_m)
 
     def _camera_h_ell_m(self, prior: AttitudePrior | None) -> float | None:
         """The camera's ellipsoidal height from the barometer (the camera-to-antenna lever ignored:
         centimetres), or None without a barometer or an offset learned from GNSS."""
-        if prior is None or prior.baro_alt_m is None or self._baro_offset_m is None or not math.isfinite(prior.baro_alt_m):
-            return None
-        return prior.baro_alt_m + self._baro_offset_m
+        baro = _baro_m(prior)
+        return None if baro is None or self._baro_offset_m is None else baro + self._baro_offset_m
 
     def _sigma_here_m(self, a: Alignment, c_slam: np.ndarray) -> float:
         """Rough 1-σ of a fix at SLAM position c under alignment a: its own σ plus SLAM drift over

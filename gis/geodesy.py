@@ -89,6 +89,23 @@ def msl_to_ellipsoid(lat_deg, lon_deg, h_msl_m) -> np.ndarray:
     return np.asarray(h_msl_m, float) + geoid_undulation_m(lat_deg, lon_deg)
 
 
+# ICAO standard atmosphere, troposphere (ICAO Doc 7488): p = P0·(1 − h/H)^(1/N), h pressure altitude
+ISA_P0_HPA = 1013.25
+ISA_H_M = 44330.77
+ISA_N = 0.190263
+
+
+def pressure_altitude_m(press_abs_hpa: float) -> float:
+    """Pressure altitude (m) of a static pressure (hPa) in the standard atmosphere. Its offset from
+    the true height varies with the weather; the pipeline learns it from GNSS."""
+    return ISA_H_M * (1.0 - (press_abs_hpa / ISA_P0_HPA) ** ISA_N)
+
+
+def pressure_hpa_at(h_m: float) -> float:
+    """Static pressure (hPa) at pressure altitude h_m: the inverse of pressure_altitude_m."""
+    return ISA_P0_HPA * (1.0 - h_m / ISA_H_M) ** (1.0 / ISA_N)
+
+
 def R_ecef_enu(lat0_deg: float, lon0_deg: float) -> np.ndarray:
     """Rotation whose columns are the east, north, up unit vectors in ECEF at (lat0, lon0).
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gis.geodesy import LocalFrame, msl_to_ellipsoid
+from gis.geodesy import LocalFrame, msl_to_ellipsoid, pressure_altitude_m
 from gis.types import GlobalFix
 from mavlink_bridge import emitters
 from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
@@ -34,14 +34,8 @@ TICK_S = 0.05
 CONFIRM_RESEND_S = 1.0   # source-switch commands are re-sent until the autopilot confirms them
 CONFIRM_TRIES = 5
 LATENCY_SAMPLES = 10000
-BARO_MAX_AGE_S = 0.5     # an ALTITUDE older than this is not attached to the attitude
+BARO_MAX_AGE_S = 0.5     # a barometer sample (ALTITUDE / SCALED_PRESSURE) older than this is not attached to the attitude
 
-
-
-def pressure_altitude_m(press_abs_hpa: float) -> float:
-    """Pressure altitude (ICAO standard atmosphere, troposphere) of a static pressure in hPa. Its
-    offset from the true height varies with the weather; the pipeline learns it from GNSS."""
-    return 44330.77 * (1.0 - (press_abs_hpa / 1013.25) ** 0.190263)
 
 @dataclass
 class BridgeStats:

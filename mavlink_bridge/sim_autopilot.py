@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gis.geodesy import LocalFrame, ellipsoid_to_msl, msl_to_ellipsoid
+from gis.geodesy import LocalFrame, ellipsoid_to_msl, msl_to_ellipsoid, pressure_hpa_at
 from mavlink_bridge.link import open_connection
 from mavlink_bridge.types import GnssSample, GpsFixType
 
@@ -52,11 +52,6 @@ MAVGPS_MAX_MEAN_GAP_S = 0.215   # ArduPilot: healthy needs ≥ 5 Hz
 EV_MAX_GAP_S = 0.2              # PX4: EV samples further apart are dropped
 EXTNAV_MIN_GAP_S = 0.02         # ArduPilot: at most one ExternalNav sample per 20 ms
 SOURCE_FRESH_S = 0.5            # a fused sample older than this no longer drives the estimate
-
-
-def pressure_hpa_at(h_m: float) -> float:
-    """Static pressure of the ICAO standard atmosphere at pressure altitude h_m (troposphere)."""
-    return 1013.25 * (1.0 - h_m / 44330.77) ** (1.0 / 0.190263)
 
 
 @dataclass(frozen=True)
@@ -111,7 +106,7 @@ class SimAutopilot:
         self._glitch = False
         self._att = (0.0, 0.0, 0.0)
         self._truth: _Pos | None = None
-        # barometer (ALTITUDE.altitude_monotonic): altitude since the first truth, plus a random-walk
+        # barometer (PX4 ALTITUDE / ArduPilot SCALED_PRESSURE): altitude since the first truth, plus a random-walk
         # drift and white noise (companion/sim/autopilot_signals.py's model: 0.02 m/√s, 0.15 m)
         self._baro_rng = np.random.default_rng(0)
         self._baro_zero_m: float | None = None
