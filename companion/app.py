@@ -78,6 +78,8 @@ class RunLog:
     autopilot_err_m: list[tuple[float, float, str]] = field(default_factory=list)  # (t, horiz. error, source)
     finetune_ms: list[float] = field(default_factory=list)      # wall time of each registration
     finetune_cpu_ms: list[float] = field(default_factory=list)  # CPU time the worker used for it
+    scale_ratios: list[float] = field(default_factory=list)     # barometer checks between registrations: ratio k (nan: untested)
+    scale_mismatches: int = 0                                    # of them, how many withheld fixes
     takeover_t_s: float | None = None
 
 
@@ -102,12 +104,22 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "camera_to_wire_ms": stats(np.array(run.camera_to_wire_ms)),
         "finetune_ms": stats(np.array(run.finetune_ms)),
         "finetune_cpu_ms": stats(np.array(run.finetune_cpu_ms)),
+        "barometer_scale_checks": _ratio_summary(run.scale_ratios, run.scale_mismatches),
         "autopilot_horizontal_error_m_after_takeover": stats(np.array([e for t, e, _ in run.autopilot_err_m
                                                                         if run.takeover_t_s is not None and t >= run.takeover_t_s + 1.0])),
         "tracking_events": tracking_events(run.records),
         "switch_events": run.switch_events,
         "alignment_events": run.alignment_events,
     }
+
+
+def _ratio_summary(ratios: list[float], mismatches: int) -> dict:
+    """The barometer's scale checks between registrations: how many ran, how many withheld fixes,
+    and the spread of the tested ratios (1 = the map under the camera at the alignment's scale)."""
+    k = np.array([x for x in ratios if np.isfinite(x)])
+    return {"n": len(ratios), "tested": int(k.size), "mismatches": mismatches,
+            "ratio_min": float(k.min()) if k.size else None, "ratio_p50": float(np.median(k)) if k.size else None,
+            "ratio_max": float(k.max()) if k.size else None}
 
 
 def tracking_events(records: list[FrameRecord]) -> list[tuple[float, str]]:
@@ -261,6 +273,8 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             while localizer.worker.busy.is_set() and time.monotonic() < deadline:
                 time.sleep(0.05)
             run.finetune_ms, run.finetune_cpu_ms = list(localizer.worker.wall_ms), list(localizer.worker.cpu_ms)
+        run.scale_ratios = [c.ratio for _, c in localizer.scale_checks]
+        run.scale_mismatches = sum(c.mismatch for _, c in localizer.scale_checks)
         map_points = np.asarray(localizer.slam.map_points().points_slam, float).reshape(-1, 3)
         received, sent = ap.received(), dict(bridge.stats().sent)
     finally:

@@ -386,6 +386,7 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
         "integrity_violation_ratio": fixes["integrity_violation_ratio"],
         "finetune_ms": _pick(s["finetune_ms"], ("mean", "p99")),
         "finetune_cpu_ms": _pick(s["finetune_cpu_ms"], ("mean", "p99")),
+        "barometer_scale_checks": s["barometer_scale_checks"],
         "rss_mb": br.resources["rss_mb"],
         "cpu_percent": br.resources["cpu_percent"],
         "gnss_baseline_error_m": gnss,

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
-from gis.align.fine import SCALE_MISMATCH_REASON, FineTuner
+from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
 from gis.types import Alignment, AlignmentSource, GlobalFix
@@ -342,6 +342,10 @@ def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarr
     return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
+def _check_scale_in_worker(points: np.ndarray, alignment: Alignment, center: np.ndarray, camera_h_ell_m: float) -> ScaleCheck:
+    return _TUNER.check_scale(points, alignment, center, camera_h_ell_m)
+
+
 class FineTuneWorker:
     """Runs FineTuner.register in its own process (``slam.worker.ForkedWorker``); at most one
     registration in flight (a new one is refused while busy).
@@ -356,9 +360,12 @@ class FineTuneWorker:
     flight reports why, and the next submit starts a new worker (never an exception on the hot path).
     """
 
-    def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None]):
+    def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None],
+                 on_scale_check: Callable[[Alignment, ScaleCheck], None] | None = None):
         self._on_result = on_result
+        self._on_scale_check = on_scale_check
         self.busy = threading.Event()
+        self.checking = threading.Event()  # a scale check in flight
         self.wall_ms: list[float] = []
         self.cpu_ms: list[float] = []
         self._lock = threading.Lock()
@@ -373,6 +380,29 @@ class FineTuneWorker:
             self.busy.set()
         fut.add_done_callback(self._done)
         return True
+
+    def check_scale(self, points_slam: np.ndarray, alignment: Alignment, center_slam: np.ndarray,
+                    camera_h_ell_m: float) -> bool:
+        """Run FineTuner.check_scale in the worker (queued behind a registration in flight); the
+        result goes to on_scale_check with the alignment it tested. At most one in flight: False
+        (nothing submitted) while one is."""
+        with self._lock:
+            if self.checking.is_set() or self._on_scale_check is None:
+                return False
+            fut = self._proc.submit(_check_scale_in_worker, points_slam, alignment, center_slam, camera_h_ell_m)
+            self.checking.set()
+        fut.add_done_callback(lambda f: self._checked(f, alignment))
+        return True
+
+    def _checked(self, fut: Future, alignment: Alignment) -> None:
+        try:
+            chk = fut.result()
+        except Exception as e:  # CancelledError at close, a dead worker (restarted by the next submit)
+            log.debug("scale check did not run: %s: %s", type(e).__name__, e)
+            self.checking.clear()
+            return
+        self.checking.clear()
+        self._on_scale_check(alignment, chk)
 
     def _done(self, fut: Future) -> None:
         try:
@@ -404,6 +434,7 @@ def _baro_m(prior: AttitudePrior | None) -> float | None:
 
 
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
+SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
@@ -433,7 +464,10 @@ class Localizer:
         self._baro_offset_m: float | None = None  # ellipsoidal height − barometric altitude (learned from GNSS)
         self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
-        self.worker = FineTuneWorker(tuner, self._on_finetune) if tuner is not None else None
+        self._scale_check_t_s = -math.inf
+        # (t_s, check) of the recent barometer checks between registrations (diagnostics)
+        self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
+        self.worker = FineTuneWorker(tuner, self._on_finetune, self._on_scale_check) if tuner is not None else None
         if initial_alignment is not None:
             self._accept(initial_alignment, "initial")
 
@@ -470,6 +504,11 @@ class Localizer:
             self.alignment = None
             self.gnss_check.reset()
 
+    def _withhold(self, t_s: float, why: str) -> None:
+        """Our map, not the world, broke: drop the alignment and send no fix until a new one."""
+        self._drop_alignment(t_s, "alignment dropped, fixes withheld: " + why)
+        self.globalizer.clear_alignment()
+
     def _on_finetune(self, alignment: Alignment | None, reason: str, wall_ms: float) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
         if alignment is None:
@@ -477,14 +516,32 @@ class Localizer:
             if reason.startswith(SCALE_MISMATCH_REASON):
                 # The map under the camera is not at the alignment's scale: fixes would drift
                 # off at speed × mismatch while claiming the alignment's σ. Send nothing.
-                self._drop_alignment(t, "alignment dropped, fixes withheld: " + reason)
-                self.globalizer.clear_alignment()
+                self._withhold(t, reason)
             return
         with self._lock:
             current = self.alignment
         if current is not None and (alignment.map_id, alignment.reset_counter) != (current.map_id, current.reset_counter):
             return  # the map changed while we registered: stale
         self._accept(alignment, f"{reason}, {wall_ms:.0f} ms")
+
+    def _on_scale_check(self, checked: Alignment, chk: ScaleCheck) -> None:
+        t = self._last_pose.t_s if self._last_pose else 0.0
+        self.scale_checks.append((t, chk))
+        with self._lock:
+            current = self.alignment
+        if chk.mismatch and current is checked:  # (a newer alignment was not tested)
+            self._withhold(t, f"{SCALE_MISMATCH_REASON}: {chk.describe()} (check between registrations)")
+
+    def _check_scale(self, pose: SlamPose, alignment: Alignment, prior: AttitudePrior | None) -> None:
+        """Every SCALE_CHECK_EVERY_S: the barometer against the map points this frame was tracked
+        with (FineTuner.check_scale, in the worker process; the answer comes back asynchronously)."""
+        if self.worker is None or pose.t_s - self._scale_check_t_s < SCALE_CHECK_EVERY_S:
+            return
+        h = self._camera_h_ell_m(prior)
+        pts = self.slam.tracked_points_slam()
+        if h is not None and len(pts) >= NADIR_MIN_POINTS and self.worker.check_scale(
+                pts, alignment, pose.T_slam_cam[:3, 3].copy(), h):
+            self._scale_check_t_s = pose.t_s
 
     def process(self, item: PipelineInput) -> FrameRecord:
         pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
@@ -503,10 +560,9 @@ class Localizer:
             # the receiver's own position gives the local level frame (metres away: same axes)
             if self.speed_check.update(pose.t_s, p, R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
                 # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
-                self._drop_alignment(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
-                                               f"{self.speed_check.last_ratio:.2f}): alignment dropped, fixes withheld")
+                self._withhold(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
+                                         f"{self.speed_check.last_ratio:.2f})")
                 alignment = None
-                self.globalizer.clear_alignment()
                 self.bootstrap.clear()
                 self.speed_check.reset()
         if pose.state.has_pose:
@@ -546,6 +602,8 @@ class Localizer:
                 else:  # too few well-triangulated points: retry soon, not every frame (a
                     # snapshot of a big map costs tens of ms on this, the tracking, thread)
                     self._frames_since_tune = every - RETRY_FRAMES
+            if alignment is not None:
+                self._check_scale(pose, alignment, item.prior)
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 

@@ -105,6 +105,12 @@ class SlamSystem:
         """Snapshot of all current map points (and the latest keyframe window)."""
         return self._with_map_id(self.mapper._snapshot(full=True))
 
+    def tracked_points_slam(self) -> np.ndarray:
+        """(N, 3) SLAM-frame positions of the map points the last frame's pose was solved from
+        (its PnP inliers: what the camera sees now); empty when that frame had no tracked pose.
+        Call from the thread that calls ``track``."""
+        return self.tracker.tracked_p_slam
+
     def current_map_key(self) -> tuple[int, int]:
         """(map_id, reset_counter) of the map being tracked now (as in SlamPose)."""
         _, map_id, reset_counter = self._current

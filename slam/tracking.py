@@ -23,6 +23,7 @@ class PoseEstimate:
     T_cam_slam: np.ndarray
     inlier_feat: np.ndarray  # feature indices
     inlier_pid: np.ndarray  # their map point ids
+    inlier_p_slam: np.ndarray  # (N, 3) their positions in the SLAM frame, as the pose was solved with them
 
 
 def solve_pnp(K: np.ndarray, p_slam: np.ndarray, uv_px: np.ndarray, T_guess: np.ndarray | None,
@@ -131,6 +132,7 @@ class Tracker:
     _reloc_timeout_s: float | None = None  # set by resume(): relocalise within this much frame time or reset
     _reloc_deadline_t_s: float | None = None
     _gravity: Gravity | None = None  # of the frame being tracked (slam.use_attitude_prior)
+    tracked_p_slam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # the last frame's pose inliers (SLAM frame)
 
     # --- public ---------------------------------------------------------------------------------
     def resume(self, timeout_s: float) -> None:
@@ -153,6 +155,7 @@ class Tracker:
         """``gravity``: the autopilot's gravity direction at this frame (None: no prior); new
         keyframes carry it to bundle adjustment and a new map is levelled with it."""
         self._gravity = gravity
+        self.tracked_p_slam = np.zeros((0, 3))
         feats = self.extract(frame.image)
         if self.state == TrackingState.INITIALIZING:
             return self._initialize(frame, feats)
@@ -173,6 +176,7 @@ class Tracker:
         self.state = state
         self.lost_frames = 0
         self.frames_since_kf += 1
+        self.tracked_p_slam = est.inlier_p_slam
         kf = None
         n = len(est.inlier_pid)
         if self._need_keyframe(est.T_cam_slam, n):
@@ -248,7 +252,7 @@ class Tracker:
             if sol2 is not None and sol2[1].sum() >= inl.sum():
                 T, inl = sol2
                 pts, pairs = pts2, pairs2
-        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]])
+        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]])
 
     def _apply_correction(self) -> None:
         gen, S = self.shared.correction

@@ -318,7 +318,7 @@ def test_cached_crop_gives_the_same_registration_as_a_fresh_crop(city):
     fresh = FineTuner(city)
     reg_fresh = _register_at(fresh, city, c2)
     assert fresh._crops.n_built == 1
-    assert len(cached._crops._last.points) > len(fresh._crops._last.points)  # a strictly larger crop was reused
+    assert len(cached._crops.last().points) > len(fresh._crops.last().points)  # a strictly larger crop was reused
     _same_registration(reg_cached, reg_fresh)
     err = np.linalg.norm(reg_cached.alignment.T_ecef_slam.apply(_slam(c2)) - T_ECEF_SLAM.apply(_slam(c2)))
     assert err < 3 * reg_cached.sigma_m and err < 0.2
@@ -330,11 +330,11 @@ def test_registration_near_the_crop_border_recrops(city):
     c1, c3 = np.array([27.0, -10.0, 0.0]), np.array([27.0 + 40.0, -10.0, 0.0])
     tuner = FineTuner(city)
     assert _register_at(tuner, city, c1, seed=5).reason == "ok"
-    old = tuner._crops._last
+    old = tuner._crops.last()
     half = tuner.config.crop_size_m / 2 + tuner.config.max_correspondence_m
     assert c3[0] + half > (old.box[2] + 1) * old.tile_m  # c3's square leaves the old crop
     reg = _register_at(tuner, city, c3)
-    new = tuner._crops._last
+    new = tuner._crops.last()
     assert tuner._crops.n_built == 2 and new is not old
     assert new.box[0] * new.tile_m <= c3[0] - half and c3[0] + half <= (new.box[2] + 1) * new.tile_m
     _same_registration(reg, _register_at(FineTuner(city), city, c3))
@@ -358,3 +358,100 @@ def test_barometer_refuses_a_map_whose_scale_broke_under_the_camera(city, shrink
         assert reg.alignment is None and reg.reason.startswith(SCALE_MISMATCH_REASON), reg.reason
     else:
         assert reg.reason == "ok", reg.reason
+
+
+@pytest.mark.parametrize("shrink, on_trees", [(1.0, 0.0), (1.15, 0.0), (1.0, 0.6), (1.15, 0.6)])
+def test_scale_check_between_registrations_reads_the_points_the_camera_sees(city, shrink, on_trees):
+    """FineTuner.check_scale, which the pipeline runs every second on the tracker's pose inliers:
+    the barometric over the SLAM height of the camera over the ground under it is 1 for a map at
+    the alignment's scale, and a 15 % shrink is flagged (its tolerance, 12 %, is wider than a
+    registration's: trees), from a few hundred points. With 60 % of the points on trees 10 m tall
+    that the model lacks (ratio 1.2 at each) the median reads 1.2, yet a map at the alignment's
+    scale passes; shrunk, it is still flagged (its ground points moved)."""
+    c_ground = np.array([20.0, -10.0, 0.0])
+    cam = c_ground + np.array([0.0, 0.0, 60.0])
+    p = slam_like_cloud(city, c_ground, 60, 3000, noise_m=0.05, seed=2)
+    seen = p[np.hypot(*(p[:, :2] - cam[:2]).T) < 40.0][:300]  # the footprint of one nadir frame
+    seen[: int(on_trees * len(seen)), 2] += 10.0
+    seen = cam + (seen - cam) / shrink
+    h_cam = float(ecef_to_geodetic(enu_sim3(ORIGIN).apply(cam[None]))[2][0])
+    tuner = FineTuner(city)
+    chk = tuner.check_scale(_slam(seen), _prior_about(cam, (0.3, -0.2, 0.1)), _slam(cam), h_cam - 0.4)
+    assert chk.n_points >= 80 and chk.low <= chk.ratio <= chk.high  # (points near roof edges untested)
+    if on_trees == 0:
+        assert chk.ratio == pytest.approx(shrink, abs=0.015)
+    else:
+        assert chk.ratio > 1.15  # the median alone would flag every map over trees
+    assert chk.mismatch is (shrink != 1.0), chk.describe()
+    assert not tuner.check_scale(_slam(seen[:10]), _prior_about(cam, (0.3, -0.2, 0.1)), _slam(cam), h_cam).mismatch  # too few: no verdict
+
+
+class _FlightSlam:
+    """Stands in for SlamSystem on a constructed flight: the camera (nadir, SLAM axes) flies east
+    at 8 m/s, 60 m over the city, and tracks the SLAM-like cloud points under it; from
+    ``t_break_s`` on, what it sees has shrunk by ``shrink`` about the camera (a scale break)."""
+
+    def __init__(self, cloud_enu: np.ndarray, shrink: float, t_break_s: float) -> None:
+        self.cloud, self.shrink, self.t_break_s = cloud_enu, shrink, t_break_s
+        self._seen = np.zeros((0, 3))
+
+    @staticmethod
+    def cam_enu(t_s: float) -> np.ndarray:
+        return np.array([8.0 * t_s, -10.0, 60.0])
+
+    def track(self, frame, prior=None) -> SlamPose:
+        cam = self.cam_enu(frame.t_s)
+        seen = self.cloud[np.hypot(*(self.cloud[:, :2] - cam[:2]).T) < 40.0][:300]
+        if frame.t_s >= self.t_break_s:
+            seen = cam + (seen - cam) / self.shrink
+        self._seen = _slam(seen)
+        T = np.eye(4)
+        T[:3, 3] = _slam(cam[None])[0]
+        return SlamPose(frame.t_s, frame.seq, T, TrackingState.OK, 0)
+
+    def tracked_points_slam(self) -> np.ndarray:
+        return self._seen
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("shrink", [1.0, 1.15])
+def test_pipeline_withholds_fixes_within_a_second_of_a_scale_break(city, shrink):
+    """The Localizer checks the map under the camera against the barometer every second between
+    registrations (real FineTuner in its worker process, real Globalizer): after a 15 % scale break
+    at 2.5 s no fix goes out from 3.6 s on; an unbroken map keeps every fix. The barometer's
+    offset is learned from the first second of GNSS."""
+    import time
+
+    from companion.pipeline import Localizer, PipelineInput
+    from mavlink_bridge.types import GnssSample, GpsFixType
+    from slam.types import AttitudePrior, Frame
+
+    cloud = slam_like_cloud(city, np.array([20.0, -10.0, 0.0]), 60, 3000, noise_m=0.05, seed=2)
+    slam = _FlightSlam(cloud, shrink, t_break_s=2.5)
+    a0 = _prior_about(_FlightSlam.cam_enu(0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), sigma_t_m=0.5, source=AlignmentSource.FINE)
+    loc = Localizer(slam, FineTuner(city), Globalizer(np.eye(4)), finetune_every_frames=10**6,
+                    finetune_every_frames_denied=10**6, initial_alignment=a0)
+    img = np.zeros((48, 64), np.uint8)
+    fixes = {}
+    try:
+        for k in range(60):
+            t = k / 10
+            lat, lon, h = (float(x[0]) for x in ecef_to_geodetic(enu_sim3(ORIGIN).apply(_FlightSlam.cam_enu(t)[None])))
+            gnss = GnssSample(t, GpsFixType.FIX_3D, lat, lon, h - 48.0, h, 0.8, 1.1, 0.5, 0.8, 14, (0.0, 8.0, 0.0)) if t < 1.0 else None
+            prior = AttitudePrior(t, 0.0, 0.0, 0.0, baro_alt_m=h - 450.0 + 0.2 * np.sin(t))  # baro: its own datum, some noise
+            fixes[t] = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, prior)).fix
+            deadline = time.monotonic() + 10.0
+            while loc.worker.checking.is_set() and time.monotonic() < deadline:
+                time.sleep(0.002)
+    finally:
+        loc.close()
+    assert len(loc.scale_checks) >= 4
+    if shrink == 1.0:
+        assert all(f is not None for f in fixes.values())
+        assert all(abs(c.ratio - 1.0) < 0.02 and not c.mismatch for _, c in loc.scale_checks)
+    else:
+        assert all(fixes[t] is not None for t in fixes if t < 2.5)
+        assert all(fixes[t] is None for t in fixes if t >= 3.6)
+        assert any("between registrations" in e and SCALE_MISMATCH_REASON in e for _, e in loc.events), list(loc.events)
