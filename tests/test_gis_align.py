@@ -340,21 +340,6 @@ def test_registration_near_the_crop_border_recrops(city):
     _same_registration(reg, _register_at(FineTuner(city), city, c3))
 
 
-def test_registration_reuses_the_scale_checks_wider_crop(city):
-    """The barometer check between registrations keeps a wider crop (its own slot); a registration
-    whose tiles it holds uses it (no KD-tree built) and registers exactly as a fresh tuner does."""
-    c = np.array([27.0, -10.0, 0.0])
-    cam = c + np.array([0.0, 0.0, 60.0])
-    tuner = FineTuner(city)
-    seen = slam_like_cloud(city, c, 60, 3000, noise_m=0.05, seed=2)[:300]
-    h_cam = float(ecef_to_geodetic(enu_sim3(ORIGIN).apply(cam[None]))[2][0])
-    tuner.check_scale(_slam(seen), _prior_about(cam, (0.3, -0.2, 0.1)), _slam(cam), h_cam)
-    assert tuner._crops.n_built == 1 and tuner._crops.last() is None
-    reg = _register_at(tuner, city, c)
-    assert tuner._crops.n_built == 1 and tuner._crops.last() is None  # served by the check's crop
-    _same_registration(reg, _register_at(FineTuner(city), city, c))
-
-
 @pytest.mark.parametrize("shrink, refused", [(1.0, False), (1.08, True)])
 def test_barometer_refuses_a_map_whose_scale_broke_under_the_camera(city, shrink, refused):
     """Demo seed 4's failure: the map under the camera shrank 8 % in a turn while the alignment kept

@@ -235,11 +235,8 @@ class _Crop:
 class _CropCache:
     """Fixed-size GIS crops (digital-twin §III-E) without rebuilding them every registration:
     the model is voxelised per tile once (LRU-cached), and the last crop of each user (``slot``:
-    the registrations, the barometer checks) and its KD-tree are kept; a request is served by any
-    kept crop that holds its tiles (its own first), and builds a new one for its slot only when
-    none does. The checks' crops reach further ahead, so registrations mostly find their tiles in
-    one (measured: building the registration's crop was 27 of its 71 ms CPU in a replay of demo
-    seeds 0–1). Thread-safe."""
+    the registrations, the barometer checks) and its KD-tree are reused while that user's next
+    request needs no tile outside it. Thread-safe."""
 
     def __init__(self, model: GisModel, voxel_m: float) -> None:
         self._model = model
@@ -263,9 +260,9 @@ class _CropCache:
         one reaches margin_m further, so that a moving user rebuilds it less often."""
         box = self._box(c_enu, half_m)
         with self._lock:
-            for kept in (self._last.get(slot), *self._last.values()):
-                if kept is not None and kept.covers(box):
-                    return kept
+            last = self._last.get(slot)
+            if last is not None and last.covers(box):
+                return last
             box = self._box(c_enu, half_m + margin_m)
             keys = [(i, j) for j in range(box[1], box[3] + 1) for i in range(box[0], box[2] + 1)]
             self._voxelise_missing([k for k in keys if k not in self._tiles])
