@@ -84,6 +84,7 @@ def test_map_updates_and_api(nominal):
     cfg = SlamConfig()
     with SlamSystem(nominal.camera, cfg) as s:
         poses = [s.track(Frame(nominal.images[i], i / 30, i)) for i in range(90)]
+        tracked = s.tracked_points_slam()
         s.wait_mapping()
         ups = s.poll_map_updates()
         snap = s.map_points()
@@ -98,6 +99,12 @@ def test_map_updates_and_api(nominal):
     assert all((u.n_obs >= 2).all() for u in ups)
     assert snap.full and len(snap.points_slam) > 200
     assert len(t_kf) == len(T_kf) >= 3 and np.all(np.diff(t_kf) > 0)
+    # the last frame's pose inliers (what the barometer check reads): in front of the camera, in the image
+    assert len(tracked) == poses[-1].n_inliers >= 20
+    p_cam = (np.linalg.inv(poses[-1].T_slam_cam) @ np.c_[tracked, np.ones(len(tracked))].T)[:3].T
+    K = nominal.camera.K
+    uv = p_cam[:, :2] / p_cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    assert (p_cam[:, 2] > 0).all() and (uv >= -1).all() and (uv[:, 0] <= 641).all() and (uv[:, 1] <= 481).all()
 
 
 def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
