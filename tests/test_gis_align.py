@@ -136,6 +136,43 @@ def test_globalizer_no_fix_without_pose_alignment_or_same_map():
     assert g.fix(_pose(T)) is not None
 
 
+def test_globalizer_widens_the_accuracy_after_a_slam_jump():
+    """A camera moving at a steady 7 m/s (10 fps) keeps the accuracy the alignment gives it; when
+    the SLAM track jumps 2 m in one frame (local mapping refreshed the points it follows), the fix
+    claims about that much more (added in quadrature), decaying over JUMP_MEMORY_S. Across an
+    alignment change nothing is predicted, so a new alignment's shift is not taken for a jump."""
+    from gis.globalizer import JUMP_MEMORY_S
+
+    a = _perturbed()
+    a = Alignment(a.T_ecef_slam, a.source, 0.0, 0, np.eye(6) * 100, 0.1, center_slam=np.zeros(3))
+
+    def globalizer(alignment):
+        g = Globalizer(np.eye(4), slam_drift_fraction=0.0)
+        g.update_alignment(alignment)
+        return g
+
+    g = globalizer(a)
+    step_slam = 0.7 / a.T_ecef_slam.scale  # 0.7 m per frame
+    x, extra = 0.0, {}
+    for k in range(200):
+        x += step_slam + (2.0 / a.T_ecef_slam.scale if k == 50 else 0.0)
+        T = np.eye(4)
+        T[0, 3] = x
+        pose = SlamPose(k / 10, k, T, TrackingState.OK, 0)
+        alone = globalizer(a).fix(pose).h_acc_m  # the alignment's accuracy here, nothing predicted
+        extra[k] = np.sqrt(max(g.fix(pose).h_acc_m ** 2 - alone**2, 0.0))
+    assert max(extra[k] for k in range(50)) < 1e-3  # steady motion: nothing added
+    assert extra[50] == pytest.approx(2.0, abs=0.05)
+    assert extra[50 + int(10 * JUMP_MEMORY_S)] == pytest.approx(extra[50] * np.exp(-1.0), rel=0.05)
+    assert extra[199] < 0.15
+    shifted = Alignment(compose(Sim3(1.0, np.eye(3), np.array([300.0, 0.0, 0.0])), a.T_ecef_slam), a.source, 0.0, 0,
+                        np.eye(6) * 100, 0.1, center_slam=np.zeros(3))
+    g.update_alignment(shifted)  # moves the fix 300 m: a new alignment, not a jump
+    T[0, 3] = x + step_slam
+    pose = SlamPose(20.0, 200, T, TrackingState.OK, 0)
+    assert g.fix(pose).h_acc_m == pytest.approx(np.hypot(globalizer(shifted).fix(pose).h_acc_m, extra[199] * np.exp(-0.02)), rel=0.01)
+
+
 def test_globalizer_against_truth_on_simulated_flight(city):
     """Flight over the box city; SLAM = truth in a scaled/rotated frame with drift noise; fine-tune
     every 40 frames from sparse points seen near the vehicle; fixes checked against truth."""
