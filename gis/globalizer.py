@@ -92,9 +92,10 @@ class Globalizer:
         frame = LocalFrame(lat, lon, h)
         R_ned_ecef = R_NED_ENU @ frame.R_ecef_enu.T
         R_ned_body = R_ned_ecef @ T_ecef_body[:3, :3]
-        cov_ned = self._cov_ned(p, a, cc, R_ned_ecef) + self._jump_m(pose.t_s, p, a) ** 2 * np.eye(3)
+        step = self._step(pose.t_s, p, a)
+        cov_ned = self._cov_ned(p, a, cc, R_ned_ecef) + self._jump_m(pose.t_s, step) ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
-        v_ned, speed_acc = self._velocity(pose.t_s, p, a, frame, cov_ned)
+        v_ned, speed_acc = self._velocity(step, R_ned_ecef)
         return GlobalFix(
             t_s=pose.t_s, seq=pose.seq, p_ecef_m=p, lat_deg=lat, lon_deg=lon, h_ellipsoid_m=h,
             h_msl_m=float(ellipsoid_to_msl(lat, lon, h)), cov_ned_m2=cov_ned,
@@ -119,19 +120,27 @@ class Globalizer:
         R = R_ned_ecef @ R_ecef_enuC
         return R @ (cov_enu + iso * np.eye(3)) @ R.T
 
-    def _jump_m(self, t_s: float, p: np.ndarray, a: Alignment) -> float:
-        """The SLAM-jump term (module doc): the distance of fix p from the constant-velocity
-        prediction of the previous fixes under the same alignment, or the largest earlier one
-        decayed by exp(−Δt / JUMP_MEMORY_S), whichever is larger. Call before _velocity."""
-        prev, now_m = self._prev, 0.0
-        if prev is not None and prev[2] is a and 0 < t_s - prev[0] <= self.max_velocity_dt_s:
-            dt = t_s - prev[0]
-            v = (p - prev[1]) / dt
-            if self._v_ecef is not None:
-                now_m = float(np.linalg.norm(p - prev[1] - self._v_ecef * dt))
-            self._v_ecef = v if self._v_ecef is None else self._v_ecef + VELOCITY_SMOOTHING * (v - self._v_ecef)
-        else:
+    def _step(self, t_s: float, p: np.ndarray, a: Alignment) -> tuple[float, np.ndarray] | None:
+        """(dt, ECEF velocity) from the previous fix to p when both are under alignment a and at
+        most max_velocity_dt_s apart, else None; p becomes the previous fix."""
+        prev, self._prev = self._prev, (t_s, p, a)
+        if prev is None or prev[2] is not a or not 0 < t_s - prev[0] <= self.max_velocity_dt_s:
+            return None
+        dt = t_s - prev[0]
+        return dt, (p - prev[1]) / dt
+
+    def _jump_m(self, t_s: float, step: tuple[float, np.ndarray] | None) -> float:
+        """The SLAM-jump term (module doc): the distance of this fix from the constant-velocity
+        prediction of the previous fixes (``step``: _step's), or the largest earlier one decayed by
+        exp(−Δt / JUMP_MEMORY_S), whichever is larger."""
+        now_m = 0.0
+        if step is None:
             self._v_ecef = None
+        else:
+            dt, v = step
+            if self._v_ecef is not None:
+                now_m = float(np.linalg.norm(v - self._v_ecef) * dt)
+            self._v_ecef = v if self._v_ecef is None else self._v_ecef + VELOCITY_SMOOTHING * (v - self._v_ecef)
         t_j, j_m = self._jump
         decayed_m = j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
         if now_m >= decayed_m:
@@ -139,13 +148,12 @@ class Globalizer:
             return now_m
         return decayed_m
 
-    def _velocity(self, t_s: float, p: np.ndarray, a: Alignment, frame: LocalFrame, cov_ned: np.ndarray):
-        """NED velocity by differencing consecutive fixes under the same alignment (else None)."""
-        prev, self._prev = self._prev, (t_s, p, a)
-        if prev is None or prev[2] is not a or not 0 < t_s - prev[0] <= self.max_velocity_dt_s:
+    def _velocity(self, step: tuple[float, np.ndarray] | None, R_ned_ecef: np.ndarray):
+        """NED velocity and its 1-σ from _step's fix-to-fix difference (None, None without one)."""
+        if step is None:
             return None, None
-        dt = t_s - prev[0]
-        v = -frame.ecef_to_ned(prev[1]) / dt
+        dt, v_ecef = step
+        v = R_ned_ecef @ v_ecef
         # Both ends share the alignment, so only the SLAM-relative error between them counts:
         # the drift fraction of the distance moved, and the floor, per end.
         rel = np.hypot(self.slam_drift_fraction * np.linalg.norm(v) * dt, self.sigma_floor_m / 10)
