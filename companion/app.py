@@ -20,7 +20,7 @@ import numpy as np
 from companion.config import AppConfig
 from companion.evaluate import fix_errors, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
-from gis.align.fine import FineTuner
+from gis.align.fine import FineTuner, ScaleCheck
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
 from gis.model import GisModel
@@ -78,8 +78,7 @@ class RunLog:
     autopilot_err_m: list[tuple[float, float, str]] = field(default_factory=list)  # (t, horiz. error, source)
     finetune_ms: list[float] = field(default_factory=list)      # wall time of each registration
     finetune_cpu_ms: list[float] = field(default_factory=list)  # CPU time the worker used for it
-    scale_ratios: list[float] = field(default_factory=list)     # barometer checks between registrations: ratio k (nan: untested)
-    scale_mismatches: int = 0                                    # of them, how many withheld fixes
+    scale_checks: list[ScaleCheck] = field(default_factory=list)  # the barometer's checks between registrations
     takeover_t_s: float | None = None
 
 
@@ -104,7 +103,7 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "camera_to_wire_ms": stats(np.array(run.camera_to_wire_ms)),
         "finetune_ms": stats(np.array(run.finetune_ms)),
         "finetune_cpu_ms": stats(np.array(run.finetune_cpu_ms)),
-        "barometer_scale_checks": _ratio_summary(run.scale_ratios, run.scale_mismatches),
+        "barometer_scale_checks": _ratio_summary(run.scale_checks),
         "autopilot_horizontal_error_m_after_takeover": stats(np.array([e for t, e, _ in run.autopilot_err_m
                                                                         if run.takeover_t_s is not None and t >= run.takeover_t_s + 1.0])),
         "tracking_events": tracking_events(run.records),
@@ -113,11 +112,11 @@ def summarize(run: RunLog, *, name: str) -> dict:
     }
 
 
-def _ratio_summary(ratios: list[float], mismatches: int) -> dict:
+def _ratio_summary(checks: list[ScaleCheck]) -> dict:
     """The barometer's scale checks between registrations: how many ran, how many withheld fixes,
     and the spread of the tested ratios (1 = the map under the camera at the alignment's scale)."""
-    k = np.array([x for x in ratios if np.isfinite(x)])
-    return {"n": len(ratios), "tested": int(k.size), "mismatches": mismatches,
+    k = np.array([c.ratio for c in checks if np.isfinite(c.ratio)])
+    return {"n": len(checks), "tested": int(k.size), "mismatches": sum(c.mismatch for c in checks),
             "ratio_min": float(k.min()) if k.size else None, "ratio_p50": float(np.median(k)) if k.size else None,
             "ratio_max": float(k.max()) if k.size else None}
 
@@ -273,8 +272,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             while localizer.worker.busy.is_set() and time.monotonic() < deadline:
                 time.sleep(0.05)
             run.finetune_ms, run.finetune_cpu_ms = list(localizer.worker.wall_ms), list(localizer.worker.cpu_ms)
-        run.scale_ratios = [c.ratio for _, c in localizer.scale_checks]
-        run.scale_mismatches = sum(c.mismatch for _, c in localizer.scale_checks)
+        run.scale_checks = [c for _, c in localizer.scale_checks]
         map_points = np.asarray(localizer.slam.map_points().points_slam, float).reshape(-1, 3)
         received, sent = ap.received(), dict(bridge.stats().sent)
     finally:
