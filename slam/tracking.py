@@ -179,6 +179,15 @@ class Tracker:
         self.tracked_p_slam = est.inlier_p_slam
         kf = None
         n = len(est.inlier_pid)
+        # The inlier-ratio rule's reference is the most points tracked since the last keyframe
+        # (ORB-SLAM compares with the reference keyframe's tracked map points). The frame that
+        # makes a keyframe is tracked on the older map alone; the keyframe's own new points reach
+        # the tracker one mapping step later. Its count was the reference before, so the rule fired
+        # only after the inliers had fallen to 3/4 of an already depleted count, and the
+        # 20-frame rule made most keyframes: on the demo flight 30 keyframes in 45 s, inliers
+        # sagging from ~150 to ~50 before each, and pose steps of 1-2.5 m when the next local map
+        # arrived (docs/BENCHMARKS.md, "Keyframe reference").
+        self.ref_kf_points = max(self.ref_kf_points, n)
         if self._need_keyframe(est.T_cam_slam, n):
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid

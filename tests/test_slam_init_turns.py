@@ -8,7 +8,9 @@ import numpy as np
 
 from slam.config import SlamConfig
 from slam.geometry import _motion_candidates, initialize_two_view, make_T, project, triangulate
-from slam.tracking import Tracker
+from slam.features import Features
+from slam.tracking import PoseEstimate, Tracker
+from slam.types import Frame, TrackingState
 
 K = np.array([[502.0, 0, 319.5], [0, 502.0, 239.5], [0, 0, 1]])
 W_PX, H_PX = 640, 480
@@ -106,3 +108,23 @@ def test_keyframe_after_turning_keyframe_max_rotation_deg():
     assert t._need_keyframe(aerial_T_cam_world(2.0, yaw_deg=1.2 * limit), n_inliers=95)
     t.shared.pending_keyframes = 2  # mapping two keyframes behind: no extra keyframe for the turn
     assert not t._need_keyframe(aerial_T_cam_world(2.0, yaw_deg=1.2 * limit), n_inliers=95)
+
+
+def test_keyframe_when_inliers_fall_below_the_ratio_of_the_most_tracked_since_the_last():
+    """The frame that makes a keyframe tracks the older map alone (50 points here); the keyframe's
+    own points arrive a mapping step later (160). The next keyframe is due once the inliers fall
+    below keyframe_inlier_ratio (0.75) of those 160, not of the 50 tracked when it was made."""
+    t = Tracker(K, W_PX, H_PX, SlamConfig(), extract=lambda img: None)
+    t.state = TrackingState.OK
+    t._keyed(aerial_T_cam_world(0.0), 50)
+    t.shared.mapping_busy = False
+    feats = Features(np.zeros((300, 2)), np.zeros((300, 32), np.uint8), np.zeros(300, int))
+
+    def new_keyframe(x_m: float, n_inliers: int) -> bool:
+        est = PoseEstimate(aerial_T_cam_world(x_m), np.arange(n_inliers), np.arange(n_inliers), np.zeros((n_inliers, 3)))
+        frame = Frame(np.zeros((H_PX, W_PX), np.uint8), x_m / 7.0, int(x_m * 10))
+        return t._accept(frame, feats, est, TrackingState.OK).new_keyframe is not None
+
+    assert [new_keyframe(x, n) for x, n in ((0.7, 160), (1.4, 150), (2.1, 125))] == [False, False, False]
+    assert new_keyframe(2.8, 115)  # < 0.75 × 160
+    assert t.ref_kf_points == 115  # the count at the new keyframe, until its own points raise it
