@@ -33,6 +33,7 @@ from gis.align.bootstrap import gnss_bootstrap
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
+from gis.sim3 import Sim3
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from mavlink_bridge.monitor import h_acc_of
 from mavlink_bridge.types import GnssSample, GpsFixType
@@ -166,6 +167,11 @@ class SlamSpeedCheck:
     ``min_speed_mps``. A spoofer walking the position off at ≤ 1–2 m/s barely changes the ratio;
     a scale collapse changes it by tens of percent. Any mismatch withholds fixes at once
     (``suspect``); ``persist_s`` of it → ``broken`` (the alignment is dropped).
+
+    The window keeps SLAM-frame positions and takes the displacement under the alignment of the
+    latest sample: while GNSS is good a new alignment is adopted every few seconds, and the
+    globalised positions of one window under two alignments differ by the change between them,
+    which is not motion.
     """
 
     window_s: float = 1.0
@@ -174,21 +180,24 @@ class SlamSpeedCheck:
     persist_s: float = 0.5
     broken: bool = False
     last_ratio: float = 1.0
-    _hist: list[tuple[float, np.ndarray, float]] = field(default_factory=list)  # (t, ECEF position under the alignment, GNSS speed)
+    _hist: list[tuple[float, np.ndarray, float]] = field(default_factory=list)  # (t, camera centre in the SLAM frame, GNSS speed)
     _since: float | None = None
 
-    def update(self, t_s: float, p_ecef_m: np.ndarray, R_ecef_enu_: np.ndarray, gnss_speed_mps: float | None) -> bool:
-        """Feed the globalised SLAM position and GNSS ground speed; returns ``broken``."""
+    def update(self, t_s: float, c_slam: np.ndarray, T_ecef_slam: Sim3, R_ecef_enu_: np.ndarray,
+               gnss_speed_mps: float | None) -> bool:
+        """Feed the SLAM camera centre, the current alignment and the GNSS ground speed; returns
+        ``broken``."""
         if gnss_speed_mps is None or not math.isfinite(gnss_speed_mps):
             self._hist.clear()  # compare only over spans with GNSS speed throughout
             return self.broken
-        self._hist.append((t_s, np.asarray(p_ecef_m, float), float(gnss_speed_mps)))
+        self._hist.append((t_s, np.asarray(c_slam, float), float(gnss_speed_mps)))
         while len(self._hist) > 2 and self._hist[1][0] <= t_s - self.window_s:
             self._hist.pop(0)
-        t0, p0, _ = self._hist[0]
+        t0, c0, _ = self._hist[0]
         if t_s - t0 < 0.5 * self.window_s:
             return self.broken
-        v_enu = R_ecef_enu_.T @ (self._hist[-1][1] - p0) / (t_s - t0)
+        p0, p1 = T_ecef_slam.apply(np.array([c0, self._hist[-1][1]]))
+        v_enu = R_ecef_enu_.T @ (p1 - p0) / (t_s - t0)
         v_vis = float(np.hypot(v_enu[0], v_enu[1]))
         v_gnss = float(np.mean([v for _, _, v in self._hist[1:]]))  # the same span's mean ground speed
         if max(v_vis, v_gnss) < self.min_speed_mps:
@@ -554,11 +563,11 @@ class Localizer:
             self._drop_alignment(pose.t_s, "SLAM map changed: alignment dropped")
             alignment = None
         if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
-            p = alignment.T_ecef_slam.apply(pose.T_slam_cam[:3, 3][None])[0]
             v = item.gnss.vel_ned_mps
             speed = float(np.hypot(v[0], v[1])) if v is not None else None
             # the receiver's own position gives the local level frame (metres away: same axes)
-            if self.speed_check.update(pose.t_s, p, R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
+            if self.speed_check.update(pose.t_s, pose.T_slam_cam[:3, 3], alignment.T_ecef_slam,
+                                       R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
                 # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
                 self._withhold(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
                                          f"{self.speed_check.last_ratio:.2f})")

@@ -74,21 +74,28 @@ def test_monitor_turns_the_vision_verdict_into_untrusted():
     assert m.status(10.1).quality is GnssQuality.GOOD
 
 
-def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: float = 8.0, t_change_s: float = 5.0):
-    """A vehicle flying east at speed_mps; our globalised track shrinks to scale_after × after
-    t_change_s (a monocular scale collapse), GNSS ground speed is the truth + drift_mps (a walk-off)."""
+def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: float = 8.0, t_change_s: float = 5.0,
+                     realign_every_s: float | None = None):
+    """A vehicle flying east at speed_mps; our SLAM track (aligned to ENU metres) shrinks to
+    scale_after × after t_change_s (a monocular scale collapse), GNSS ground speed is the truth +
+    drift_mps (a walk-off). realign_every_s: a new alignment, 3 m east of the last, that often (GNSS
+    re-bootstraps moving the globalised track by that much)."""
     from companion.pipeline import SlamSpeedCheck
+    from gis.align.fine import enu_sim3
     from gis.geodesy import LocalFrame
+    from gis.sim3 import Sim3
 
     origin = LocalFrame(47.0, 8.0, 500.0)
+    T_ecef_enu = enu_sim3(origin)
     check = SlamSpeedCheck()
     suspect_t = broken_t = None
     x = 0.0
     for k in range(150):
         t = k * 0.1
         x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0)
-        p = origin.enu_to_ecef(np.array([[x, 0.0, 60.0]]))[0]
-        broken = check.update(t, p, origin.R_ecef_enu, speed_mps + drift_mps)
+        shift_m = 3.0 * int(t / realign_every_s) if realign_every_s else 0.0
+        T_ecef_slam = T_ecef_enu @ Sim3(1.0, np.eye(3), np.array([shift_m, 0.0, 0.0]))
+        broken = check.update(t, np.array([x, 0.0, 60.0]), T_ecef_slam, origin.R_ecef_enu, speed_mps + drift_mps)
         if check.suspect and suspect_t is None:
             suspect_t = t
         if broken and broken_t is None:
@@ -103,3 +110,7 @@ def test_slam_scale_collapse_is_caught_by_gnss_ground_speed():
     assert _speed_check_run(scale_after=1.0) == (None, None)
     assert _speed_check_run(scale_after=1.0, drift_mps=1.0) == (None, None)  # a walk-off spoofer is not our scale
     assert _speed_check_run(scale_after=0.5, speed_mps=1.0) == (None, None)  # hovering: no yardstick
+    # a new alignment moves the whole window, not the vehicle: 3 m every 2 s read as 11 instead of 8 m/s before
+    assert _speed_check_run(scale_after=1.0, realign_every_s=2.0) == (None, None)
+    suspect_t, _ = _speed_check_run(scale_after=0.5, realign_every_s=2.0)
+    assert suspect_t is not None and 5.0 < suspect_t <= 6.0
