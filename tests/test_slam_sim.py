@@ -8,6 +8,7 @@ import pytest
 
 from slam.bench import render_sequence, run_sequence
 from slam.config import SlamConfig
+from slam.geometry import inv_T, project
 from slam.system import SlamSystem
 from slam.types import Frame, TrackingState
 
@@ -101,10 +102,8 @@ def test_map_updates_and_api(nominal):
     assert len(t_kf) == len(T_kf) >= 3 and np.all(np.diff(t_kf) > 0)
     # the last frame's pose inliers (what the barometer check reads): in front of the camera, in the image
     assert len(tracked) == poses[-1].n_inliers >= 20
-    p_cam = (np.linalg.inv(poses[-1].T_slam_cam) @ np.c_[tracked, np.ones(len(tracked))].T)[:3].T
-    K = nominal.camera.K
-    uv = p_cam[:, :2] / p_cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-    assert (p_cam[:, 2] > 0).all() and (uv >= -1).all() and (uv[:, 0] <= 641).all() and (uv[:, 1] <= 481).all()
+    uv, z = project(nominal.camera.K, inv_T(poses[-1].T_slam_cam), tracked)
+    assert (z > 0).all() and (uv >= -1).all() and (uv[:, 0] <= 641).all() and (uv[:, 1] <= 481).all()
 
 
 def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
