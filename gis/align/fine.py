@@ -13,14 +13,14 @@ gives it the same correspondences (_CropCache).
 - Solve: each iteration is one Gauss–Newton step of the point-to-plane cost of digital-twin Eq. 2
   (Tukey IRLS) over rotation, translation and log-scale; the Jacobian row is Eq. 9's A_j extended
   by the scale column n_j·a_j. Written by hand: no library here does point-to-plane with scale.
-- Which degrees of freedom: with a usable prior (an alignment with ``center_slam`` and a finite
-  information), the tilt (rotation about east and north) stays at the prior's and ICP solves
-  yaw, translation and scale (5 DoF); the prior's tilt error then enters the measured translation
-  through the lever arm to the cloud (measurement matrix M below) and the update accounts for it.
-  Reason, measured on the simulator's real monocular SLAM (nominal/stale, 800 frames): the cloud's
-  ground is tilted 0.3–1.7° relative to the trajectory that made it (vertical residual SD 1.0–1.3 m),
-  and the camera is 80–100 m from its points, so a 7-DoF fit moved the camera 0.4–1.7 m away from
-  truth even when started at truth; with tilt held, 0.1–0.6 m. Without a prior all 7 DoF are solved.
+- Degrees of freedom: all 7 (rotation, translation, scale), with or without a prior; the
+  cloud's apparent tilt is a systematic term of the measurement (below) and the Kalman update
+  weighs it against the prior's. An earlier version held the tilt at the prior's whenever there
+  was one (5 DoF): on the SLAM of its time a 7-DoF fit started at the truth moved the camera
+  0.4–1.7 m away. Replayed on the 106 registrations of twelve demo flights of the current SLAM
+  (docs/BENCHMARKS.md, "Fine-tuning solves the tilt again"), solving the tilt put the camera
+  0.70–0.72 m from the truth instead of 0.82–0.91 m, and positions over the next 5 s 0.65 m
+  horizontally (0.33 m vertically) instead of 0.77 (0.52), with no more registrations beyond 3σ.
 - Poor guess (opt-in, ``fpfh_fallback``): FPFH + RANSAC global registration (§4.4), then ICP
   again; the same gates apply. Off by default (seconds; wrong on sparse clouds in our trials).
 
@@ -29,7 +29,7 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
 - Random: σ²·H⁻¹ (Eq. 8–9, H over inliers) × RANDOM_INFLATION for neighbouring points sharing
   their triangulation errors.
 - Systematic: a monocular cloud is not rigidly consistent with its trajectory: an offset of
-  SYS_OFFSET_FRACTION × the robust (MAD) residual scale of all matched points, and (7-DoF solves)
+  SYS_OFFSET_FRACTION × the robust (MAD) residual scale of all matched points, and
   an apparent tilt of σ_MAD / (crop half-width) rad about the cloud's centroid, which moves the
   crop centre through the lever arm. Scaled by the cloud's own residual scale, so a clean cloud
   (synthetic, 5 cm noise) keeps a centimetre σ and a real one (σ_MAD ≈ 0.55 m inside the final
@@ -40,7 +40,7 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   truth were caught only by 3 m restarts, not by 2 m ones); the Hessian alone reported 0.05–0.2 m.
 - Update: prior (propagated to the crop centre with its lever arm, SLAM drift, scale σ and the
   scale's own drift, ``slam_scale_drift_per_100m`` × distance; GNSS priors also with model_sigma_m)
-  and measurement z = M x + v: Kalman update x = K z, P⁺ = (I − K M) P, for every prior.
+  and measurement z = x + v: Kalman update x = K z, P⁺ = (I − K) P, for every prior.
   Covariance intersection (Julier & Uhlmann 1997, one ω minimising the position trace) was used
   for FINE priors, since consecutive crops share map points; measured on the demo flight it chose
   ω ≈ 0.95 every time (the measurement's translation σ is 1.6–6 m from the basin spread) and so
@@ -67,7 +67,7 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   a single facade is refused, the prior does not rescue it; and restarts that slide more than
   MULTISTART_M + max_jump_m from the optimum: no basin, as on a facade whose voxelised edges give
   the Hessian a weak hold), jump of the crop centre, and the
-  innovation χ² zᵀS⁻¹z > χ²(99.9 %, 5 or 7 DoF): the registration disagrees with the prior beyond
+  innovation χ² zᵀS⁻¹z > χ²(99.9 %, 7 DoF): the registration disagrees with the prior beyond
   both uncertainties; a prior vaguer than MAX_PRIOR_SIGMA_M (the ICP's basin: from 6 m off it
   converged 2–5 m from truth with a spread that looked like a right answer's) is refused, and
   without a prior the basin check must agree to STANDALONE_MAX_SPREAD_M. Accepted: information =
@@ -122,10 +122,8 @@ MULTISTART_M = 3.0             # basin check: ICP restarted from its solution sh
 MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 90.0, 180.0, 270.0))
 STANDALONE_MAX_SPREAD_M = 0.5  # without a prior to check against, the optimum must be unique to this
 MAX_PRIOR_SIGMA_M = 2.5        # ICP's basin on real SLAM clouds is ≈3 m: a vaguer prior cannot be refined safely
-CHI2_999 = {5: 20.52, 7: 24.32}  # χ² 99.9 % quantiles by degrees of freedom
+CHI2_999 = 24.32               # χ² 99.9 % quantile, 7 degrees of freedom
 UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
-ALL_DOF = (0, 1, 2, 3, 4, 5, 6)   # [rot e, rot n, rot u, t e, t n, t u, log-scale]
-TILT_HELD_DOF = (2, 3, 4, 5, 6)   # yaw, translation, scale
 ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton step moves no cloud point more than this
 MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
 TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
@@ -162,7 +160,6 @@ class Registration:
     nis: float = 0.0          # innovation χ² against the prior (0 without a usable prior)
     spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check)
     sigma_mad_m: float = 0.0  # robust residual scale of all matched points
-    n_dof: int = 7            # degrees of freedom the ICP solved
     scale_ratio: float = float("nan")  # barometric / SLAM height over the ground under the camera (nan: not tested)
 
 
@@ -357,38 +354,36 @@ class FineTuner:
         # model would otherwise lose true correspondences and report a low fitness).
         min_corr = 1.5 * crop.spacing_m(c, half)
 
-        free = TILT_HELD_DOF if prior is not None else ALL_DOF
-        icp = _evaluate(src, crop, c, _icp(src, crop, c, Sim3.identity(), cfg, min_corr, free), cfg, min_corr)
-        reason = self._gate(icp, cfg, free)
+        icp = _evaluate(src, crop, c, _icp(src, crop, c, Sim3.identity(), cfg, min_corr), cfg, min_corr)
+        reason = self._gate(icp, cfg)
         used_fpfh = False
         if reason and cfg.fpfh_fallback:
             guess = _fpfh_guess(src, crop, c, half, cfg)
             if guess is not None:
-                icp2 = _evaluate(src, crop, c, _icp(src, crop, c, guess, cfg, min_corr, ALL_DOF), cfg, min_corr)
-                reason2 = self._gate(icp2, cfg, ALL_DOF)
+                icp2 = _evaluate(src, crop, c, _icp(src, crop, c, guess, cfg, min_corr), cfg, min_corr)
+                reason2 = self._gate(icp2, cfg)
                 if not reason2 or icp2.fitness > icp.fitness:
-                    icp, reason, used_fpfh, free = icp2, reason2, True, ALL_DOF
+                    icp, reason, used_fpfh = icp2, reason2, True
         spread = 0.0
         if not reason:  # basin check: restarts from shifted guesses must find the same optimum
             for dist_m, ang_deg in MULTISTARTS:
                 ang = np.radians(ang_deg)
                 g = compose(Sim3(1.0, np.eye(3), dist_m * np.array([np.cos(ang), np.sin(ang), 0.0])), icp.T)
-                other = _icp(src, crop, c, g, cfg, min_corr, free)
+                other = _icp(src, crop, c, g, cfg, min_corr)
                 spread = max(spread, float(np.linalg.norm(other.t - icp.T.t)))
 
-        z = _vec(icp.T)[list(free)]
-        R = _measurement_cov(icp, cfg, free, spread)
-        M = _measurement_matrix(free, icp.centroid)
+        z = _vec(icp.T)
+        R = _measurement_cov(icp, cfg, spread)
         nis = 0.0
-        if prior is None:  # the registration stands alone (7 DoF: M = I)
-            x_post, P_post = _vec(icp.T), R
+        if prior is None:  # the registration stands alone
+            x_post, P_post = z, R
         else:
-            x_post, P_post, nis = _update(z, M, R, prior)
+            x_post, P_post, nis = _update(z, R, prior)
         sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
                       n_target=n_tgt, used_fpfh=used_fpfh, nis=nis, spread_m=spread,
-                      sigma_mad_m=icp.sigma_mad_m, n_dof=len(free), scale_ratio=k)
+                      sigma_mad_m=icp.sigma_mad_m, scale_ratio=k)
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
         if not reason and spread > MULTISTART_M + cfg.max_jump_m:
@@ -397,10 +392,9 @@ class FineTuner:
         if not reason and prior is None and spread > STANDALONE_MAX_SPREAD_M:
             reason = (f"ambiguous optimum: restarts {MULTISTART_M} m away converge {spread:.2f} m apart "
                       f"(> {STANDALONE_MAX_SPREAD_M} m) and there is no prior to decide")
-        chi2 = CHI2_999[len(free)]
-        if not reason and nis > chi2:
-            reason = (f"inconsistent with the prior alignment: innovation χ² {nis:.1f} > {chi2} "
-                      f"({len(free)} DoF, 99.9 %; ICP moved the crop centre {jump:.2f} m)")
+        if not reason and nis > CHI2_999:
+            reason = (f"inconsistent with the prior alignment: innovation χ² {nis:.1f} > {CHI2_999} "
+                      f"(7 DoF, 99.9 %; ICP moved the crop centre {jump:.2f} m)")
         if reason:
             return Registration(None, reason, wall_ms=1e3 * (time.perf_counter() - t0), **common)
 
@@ -472,12 +466,12 @@ class FineTuner:
         lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c_enu))
         return LocalFrame(float(lat), float(lon)).R_ecef_enu.T @ self.model.origin.R_ecef_enu
 
-    def _gate(self, icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...]) -> str:
+    def _gate(self, icp: _Icp, cfg: AlignmentConfig) -> str:
         if icp.fitness < cfg.min_fitness:
             return f"fitness {icp.fitness:.2f} < min_fitness {cfg.min_fitness}"
         if icp.rmse_m > cfg.max_rmse_m:
             return f"inlier RMSE {icp.rmse_m:.2f} m > max_rmse_m {cfg.max_rmse_m}"
-        sig_p, sig_r, sig_s = _sigmas(icp, cfg, free)
+        sig_p, sig_r, sig_s = _sigmas(icp, cfg)
         if sig_p > cfg.max_sigma_m:
             return f"degenerate geometry: position 1-σ {sig_p:.2g} m > max_sigma_m {cfg.max_sigma_m} (e.g. a single facade)"
         if np.degrees(sig_r) > cfg.max_sigma_rot_deg:
@@ -544,74 +538,54 @@ def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: fl
     return ScaleCheck(float(np.median(k)), float(low), float(high), n, tolerance)
 
 
-def _sigmas(icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...] = ALL_DOF) -> tuple[float, float, float]:
-    """Weakest 1-σ of (position m, rotation rad, relative scale) of the solved DoF from σ²·H⁻¹
-    (Eq. 8–9, data alone; inf if singular). Degeneracy test only: not the reported uncertainty."""
+def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
+    """Weakest 1-σ of (position m, rotation rad, relative scale) from σ²·H⁻¹ (Eq. 8–9, data alone;
+    inf if singular). Degeneracy test only: not the reported uncertainty."""
     sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
-    f = list(free)
-    H = icp.H7[np.ix_(f, f)]
-    w, V = np.linalg.eigh(H)
+    w, V = np.linalg.eigh(icp.H7)
     if w[0] <= 1e-9 * max(w[-1], 1e-12):
         return float("inf"), float("inf"), float("inf")
-    cov = np.zeros((7, 7))
-    cov[np.ix_(f, f)] = sigma2 * (V / w) @ V.T
+    cov = sigma2 * (V / w) @ V.T
     sig_p = float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1]))
     sig_r = float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))
     return sig_p, sig_r, float(np.sqrt(cov[6, 6]))
 
 
-def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, free: tuple[int, ...], spread_m: float) -> np.ndarray:
-    """Covariance of the ICP solution over the solved DoF (module doc: random + systematic + basin)."""
-    f = list(free)
+def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, spread_m: float) -> np.ndarray:
+    """Covariance of the ICP solution [rot, trans, log-scale] (module doc: random + systematic + basin)."""
     sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
-    w, V = np.linalg.eigh(icp.H7[np.ix_(f, f)])
+    w, V = np.linalg.eigh(icp.H7)
     if w[0] <= 1e-9 * max(w[-1], 1e-12):
-        return np.eye(len(f)) * UNKNOWN_VAR
-    cov = np.zeros((7, 7))
-    cov[np.ix_(f, f)] = RANDOM_INFLATION * sigma2 * (V / w) @ V.T
+        return np.eye(7) * UNKNOWN_VAR
+    cov = RANDOM_INFLATION * sigma2 * (V / w) @ V.T
     s_mad = max(icp.sigma_mad_m, cfg.sigma_floor_m)
     sig_tilt = s_mad / (cfg.crop_size_m / 2)  # apparent rotation of the cloud about its centroid, rad
-    if 0 in free:  # tilt solved: it carries the cloud's apparent tilt, and moves the centre by ω × (c − p̄)
-        A = np.vstack([np.eye(3), _skew(icp.centroid), np.zeros((1, 3))])
-        cov += sig_tilt**2 * A @ A.T
-    else:
-        cov[2, 2] += sig_tilt**2
+    # the solved rotation carries the cloud's apparent tilt, and it moves the centre by ω × (c − p̄)
+    A = np.vstack([np.eye(3), _skew(icp.centroid), np.zeros((1, 3))])
+    cov += sig_tilt**2 * A @ A.T
     cov[3:6, 3:6] += ((SYS_OFFSET_FRACTION * s_mad) ** 2 + spread_m**2) * np.eye(3)
     cov[6, 6] += SYS_SCALE_SIGMA**2
-    return cov[np.ix_(f, f)]
+    return cov
 
 
-def _measurement_matrix(free: tuple[int, ...], centroid: np.ndarray) -> np.ndarray:
-    """M with z = M x: the solved DoF of the increment; with tilt held at the prior's, the cloud
-    shift that a tilt error ω_t would need, ω_t × (p̄ − c), is absorbed by the solved translation."""
-    f = list(free)
-    M = np.eye(7)[f]
-    if 0 not in free:
-        rows = [f.index(i) for i in (3, 4, 5)]
-        M[np.ix_(rows, [0, 1])] = -_skew(centroid)[:, :2]  # ω × p̄ = −[p̄]× ω
-    return M
-
-
-def _update(z: np.ndarray, M: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Kalman update of the increment x (prior N(0, P)) given z = M x + v, v ~ N(0, R): x⁺ = K z,
-    P⁺ = (I − K M) P. Returns (x⁺, P⁺, innovation χ² = zᵀ (M P Mᵀ + R)⁻¹ z)."""
-    S = M @ P @ M.T + R
+def _update(z: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Kalman update of the increment x (prior N(0, P)) given z = x + v, v ~ N(0, R): x⁺ = K z,
+    P⁺ = (I − K) P, K = P (P + R)⁻¹. Returns (x⁺, P⁺, innovation χ² = zᵀ (P + R)⁻¹ z)."""
+    S = P + R
     nis = float(z @ np.linalg.solve(S, z))
-    K = P @ M.T @ np.linalg.inv(S)
-    Pp = (np.eye(len(P)) - K @ M) @ P
+    K = P @ np.linalg.inv(S)
+    Pp = (np.eye(len(P)) - K) @ P
     return K @ z, 0.5 * (Pp + Pp.T), nis
 
 
-def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float,
-         free: tuple[int, ...] = ALL_DOF) -> Sim3:
-    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) in coordinates centred at c over
-    the DoF in ``free`` (indices of [rot, trans, log-scale]; the others stay at T0's).
+def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> Sim3:
+    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) over [rot, trans, log-scale] in
+    coordinates centred at c, from T0.
 
     Each iteration: one cKDTree query (C) for the correspondences, then one Gauss–Newton step of
     digital-twin Eq. 2 with the Jacobian rows A_j of Eq. 9 extended by the scale column n_j·a_j. A level ends when a step moves
     no cloud point more than ICP_STEP_TOL_M (10× below the σ floor)."""
     s, R, t = T0.scale, T0.R, T0.t
-    f = list(free)
     reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
@@ -621,12 +595,11 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
             if len(r) < 7:
                 break
             w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
-            J = _jacobian(x, n)[:, f]
+            J = _jacobian(x, n)
             Jw = J * w[:, None]
             H = Jw.T @ J
-            delta = np.zeros(7)
             try:
-                delta[f] = -np.linalg.solve(H + 1e-6 * np.trace(H) / len(f) * np.eye(len(f)), Jw.T @ r)
+                delta = -np.linalg.solve(H + 1e-6 * np.trace(H) / 7 * np.eye(7), Jw.T @ r)
             except np.linalg.LinAlgError:
                 break
             Rd, sd = _rotvec_matrix(delta[:3]), float(np.exp(delta[6]))
