@@ -538,14 +538,21 @@ def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: fl
     return ScaleCheck(float(np.median(k)), float(low), float(high), n, tolerance)
 
 
-def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
-    """Weakest 1-σ of (position m, rotation rad, relative scale) from σ²·H⁻¹ (Eq. 8–9, data alone;
-    inf if singular). Degeneracy test only: not the reported uncertainty."""
-    sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
+def _data_cov(icp: _Icp, cfg: AlignmentConfig) -> np.ndarray | None:
+    """σ²·H⁻¹ over [rot, trans, log-scale] (Eq. 8–9, the data alone; σ the inlier RMSE, floored);
+    None when H is singular."""
     w, V = np.linalg.eigh(icp.H7)
     if w[0] <= 1e-9 * max(w[-1], 1e-12):
+        return None
+    return max(icp.rmse_m, cfg.sigma_floor_m) ** 2 * (V / w) @ V.T
+
+
+def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
+    """Weakest 1-σ of (position m, rotation rad, relative scale) of _data_cov (inf if singular).
+    Degeneracy test only: not the reported uncertainty."""
+    cov = _data_cov(icp, cfg)
+    if cov is None:
         return float("inf"), float("inf"), float("inf")
-    cov = sigma2 * (V / w) @ V.T
     sig_p = float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1]))
     sig_r = float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))
     return sig_p, sig_r, float(np.sqrt(cov[6, 6]))
@@ -553,11 +560,10 @@ def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
 
 def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, spread_m: float) -> np.ndarray:
     """Covariance of the ICP solution [rot, trans, log-scale] (module doc: random + systematic + basin)."""
-    sigma2 = max(icp.rmse_m, cfg.sigma_floor_m) ** 2
-    w, V = np.linalg.eigh(icp.H7)
-    if w[0] <= 1e-9 * max(w[-1], 1e-12):
+    cov = _data_cov(icp, cfg)
+    if cov is None:
         return np.eye(7) * UNKNOWN_VAR
-    cov = RANDOM_INFLATION * sigma2 * (V / w) @ V.T
+    cov = RANDOM_INFLATION * cov
     s_mad = max(icp.sigma_mad_m, cfg.sigma_floor_m)
     sig_tilt = s_mad / (cfg.crop_size_m / 2)  # apparent rotation of the cloud about its centroid, rad
     # the solved rotation carries the cloud's apparent tilt, and it moves the centre by ω × (c − p̄)
