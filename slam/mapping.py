@@ -11,6 +11,7 @@ import time
 from collections import deque
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
@@ -111,21 +112,33 @@ def _gravity_arrays(kfs: list[Keyframe]) -> tuple[np.ndarray | None, np.ndarray 
     return g, sigma
 
 
-def point_parallax_deg(m: SlamMap, pids: list[int]) -> np.ndarray:
-    """Per point: the angle (deg) between the rays to it from the first and the last keyframe
-    that observe it (0 when one does). A point's depth error grows as 1/parallax (a feature's
-    bearing noise of ~1 mrad gives ~0.5 m at 15° and 100–150 m range), so alignment can leave
-    out the poorly triangulated ones. Call with m.lock held."""
-    if not pids:
-        return np.zeros(0)
-    P = np.array([m.points[p].p_slam for p in pids]).reshape(-1, 3)
-    centers = {k: kf.center for k, kf in m.keyframes.items()}
+def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,3) SLAM positions, (N,) observation counts and (N,) parallax (deg) of the points ``pids``.
+
+    Parallax: the angle between the rays to a point from the first and the last keyframe that
+    observe it (0 when one does). A point's depth error grows as 1/parallax (a feature's bearing
+    noise of ~1 mrad gives ~0.5 m at 15° and 100–150 m range), so alignment can leave out the
+    poorly triangulated ones. Vectorised over the flattened observations: a loop per point took
+    80 % of a full map snapshot, which runs on the tracking thread (docs/BENCHMARKS.md, "Map
+    snapshot"). Call with m.lock held."""
+    pts = [m.points[p] for p in pids]
+    P = np.array([mp.p_slam for mp in pts], float).reshape(-1, 3)
+    n_obs = np.fromiter((len(mp.obs) for mp in pts), np.int64, len(pts))
+    kf = np.fromiter(chain.from_iterable(mp.obs for mp in pts), np.int64, int(n_obs.sum()))
+    owner = np.repeat(np.arange(len(pts)), n_obs)
+    ids = np.array(m.kf_ids(), np.int64)
+    known = np.isin(kf, ids)  # an observation of a keyframe the map no longer holds does not count
+    kf, owner = kf[known], owner[known]
+    first = np.full(len(pts), np.iinfo(np.int64).max)
+    last = np.full(len(pts), -1)
+    np.minimum.at(first, owner, kf)
+    np.maximum.at(last, owner, kf)
+    two = np.bincount(owner, minlength=len(pts)) >= 2
+    centers = np.array([m.keyframes[k].center for k in ids.tolist()]).reshape(-1, 3)
     A, B = P.copy(), P.copy()  # a point without two observing keyframes: zero-length rays → 0°
-    for k, p in enumerate(pids):
-        obs = [i for i in m.points[p].obs if i in centers]
-        if len(obs) >= 2:
-            A[k], B[k] = centers[min(obs)], centers[max(obs)]
-    return parallax_deg(P, A, B)
+    A[two] = centers[np.searchsorted(ids, first[two])]
+    B[two] = centers[np.searchsorted(ids, last[two])]
+    return P, n_obs.astype(np.int32), parallax_deg(P, A, B)
 
 
 TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
@@ -587,12 +600,11 @@ class LocalMapper:
         with m.lock:
             pids = sorted(m.points)
             ids = m.kf_ids()[-self.config.local_window:]
+            P, n_obs, parallax = map_point_arrays(m, pids)
             return MapUpdate(
                 t_s=m.keyframes[ids[-1]].t_s if ids else 0.0,
-                points_slam=np.array([m.points[p].p_slam for p in pids]).reshape(-1, 3),
-                point_ids=np.array(pids, np.int64),
-                n_obs=np.array([len(m.points[p].obs) for p in pids], np.int32),
+                points_slam=P, point_ids=np.array(pids, np.int64), n_obs=n_obs,
                 keyframe_t_s=np.array([m.keyframes[k].t_s for k in ids]),
                 keyframe_centers_slam=np.array([m.keyframes[k].center for k in ids]).reshape(-1, 3),
                 reset_counter=self.reset_counter, full=full, map_id=self.reset_counter,
-                parallax_deg=point_parallax_deg(m, pids))
+                parallax_deg=parallax)

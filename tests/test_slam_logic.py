@@ -245,7 +245,7 @@ def test_reliable_region_with_uneven_keyframe_times_reduces_to_eq4():
 
 def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays():
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import point_parallax_deg
+    from slam.mapping import map_point_arrays
 
     m = SlamMap()
     for x_m in (0.0, 5.0, 10.0):  # three cameras on a line, 10 m apart at the ends, looking down (+z)
@@ -254,10 +254,11 @@ def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays()
                                 np.zeros((2, 32), np.uint8), np.full(2, -1, np.int64)))
     both = m.add_point(np.array([5.0, 0.0, 10.0]), np.zeros(32), {0: 0, 1: 0, 2: 0})  # 10 m below the middle
     one = m.add_point(np.array([0.0, 0.0, 50.0]), np.zeros(32), {0: 1})               # one observation
-    par = point_parallax_deg(m, [both, one])
+    P, n_obs, par = map_point_arrays(m, [one, both])  # any order
+    assert P.tolist() == [[0.0, 0.0, 50.0], [5.0, 0.0, 10.0]] and n_obs.tolist() == [1, 3]
     # rays from x=0 and x=10 to (5, 0, 10): each 26.57° off the vertical, 53.13° apart
-    assert par[0] == pytest.approx(2 * np.degrees(np.arctan(0.5)), abs=1e-9)
-    assert par[1] == 0.0
+    assert par[1] == pytest.approx(2 * np.degrees(np.arctan(0.5)), abs=1e-9)
+    assert par[0] == 0.0
 
 
 def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
