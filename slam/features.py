@@ -56,18 +56,33 @@ def undistort_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
                                P=camera.K).reshape(-1, 2)
 
 
+FAST_THRESHOLD = 20      # ORB-SLAM's iniThFAST (intensity levels)
+FAST_THRESHOLD_MIN = 12  # used when the image gives fewer than n_features corners (ORB-SLAM's minThFAST is 7)
+
+
 def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray], Features]:
     """OpenCV ORB (8 levels, x1.2) over-detecting 1.5x, then spread over a 16x16 grid.
+
+    FAST threshold FAST_THRESHOLD; when that finds fewer than n_features corners (a dark or
+    low-contrast image), detection is repeated with FAST_THRESHOLD_MIN, as ORB-SLAM does per grid
+    cell (here for the whole image: one more OpenCV call, and keep_spread still ranks by Harris
+    response within each cell). The simulator's `dark` frames (gain 0.3, ~4 DN of noise) give
+    120–900 corners at 20, 800–1340 at 12 and 1250–1480 at 7; its other scenarios ≥ 1310 at 20,
+    so they never fall back. With 7, noise corners made dark seed 0's SLAM track fail the GNSS
+    bootstrap (fit residual 4.15 m); with 12 every dark seed got fixes (docs/BENCHMARKS.md, "Dark
+    frames").
 
     Harris ranking kept: FAST score saved ~1.5 ms/frame but doubled-to-tenfold the trajectory
     error on the nominal sequence in our runs.
     """
-    orb = cv2.ORB_create(nfeatures=int(1.5 * n_features), scaleFactor=1.2, nlevels=8, fastThreshold=20,
-                         scoreType=cv2.ORB_HARRIS_SCORE)
+    orb, orb_low = (cv2.ORB_create(nfeatures=int(1.5 * n_features), scaleFactor=1.2, nlevels=8, fastThreshold=t,
+                                   scoreType=cv2.ORB_HARRIS_SCORE) for t in (FAST_THRESHOLD, FAST_THRESHOLD_MIN))
 
     def extract(image: np.ndarray) -> Features:
         gray = to_gray(image)
         kps = orb.detect(gray, None)
+        if len(kps) < n_features:  # low contrast: ORB-SLAM's minThFAST fallback, over the whole image
+            kps = orb_low.detect(gray, None)
         if not kps:
             return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
         uv = np.array([k.pt for k in kps])
