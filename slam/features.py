@@ -56,33 +56,47 @@ def undistort_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
                                P=camera.K).reshape(-1, 2)
 
 
-FAST_THRESHOLD = 20      # ORB-SLAM's iniThFAST (intensity levels)
-FAST_THRESHOLD_MIN = 12  # used when the image gives fewer than n_features corners (ORB-SLAM's minThFAST is 7)
+FAST_THRESHOLD = 20             # ORB-SLAM's iniThFAST (intensity levels)
+LOW_CONTRAST_BLUR_PX = 1.0      # low-contrast frames: Gaussian denoising σ before the stretch
+LOW_CONTRAST_STD_DN = 30.0      # ... and the intensity std they are stretched to (nominal frames: 28–35 DN)
+LOW_CONTRAST_MAX_GAIN = 4.0     # ... by at most this factor (a featureless frame's noise is not made into corners)
+
+
+def normalise_contrast(gray: np.ndarray) -> np.ndarray:
+    """A low-contrast (dark) frame denoised and stretched: Gaussian σ LOW_CONTRAST_BLUR_PX, then an
+    affine intensity map to std LOW_CONTRAST_STD_DN about mid-grey (gain ≤ LOW_CONTRAST_MAX_GAIN).
+    FAST's fixed threshold then stands in the same ratio to the scene's contrast as on a normal
+    frame, and the denoising keeps sensor noise from making corners. (BRIEF compares intensities,
+    so an affine map leaves descriptors of well-lit and stretched frames comparable.)"""
+    blurred = cv2.GaussianBlur(gray, (0, 0), LOW_CONTRAST_BLUR_PX)
+    mean, std = (float(v[0, 0]) for v in cv2.meanStdDev(blurred))
+    gain = min(LOW_CONTRAST_STD_DN / max(std, 1e-6), LOW_CONTRAST_MAX_GAIN)
+    return cv2.convertScaleAbs(blurred, alpha=gain, beta=128.0 - gain * mean)
 
 
 def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray], Features]:
     """OpenCV ORB (8 levels, x1.2) over-detecting 1.5x, then spread over a 16x16 grid.
 
-    FAST threshold FAST_THRESHOLD; when that finds fewer than n_features corners (a dark or
-    low-contrast image), detection is repeated with FAST_THRESHOLD_MIN, as ORB-SLAM does per grid
-    cell (here for the whole image: one more OpenCV call, and keep_spread still ranks by Harris
-    response within each cell). The simulator's `dark` frames (gain 0.3, ~4 DN of noise) give
-    120–900 corners at 20, 800–1340 at 12 and 1250–1480 at 7; its other scenarios ≥ 1310 at 20,
-    so they never fall back. With 7, noise corners made dark seed 0's SLAM track fail the GNSS
-    bootstrap (fit residual 4.15 m); with 12 every dark seed got fixes (docs/BENCHMARKS.md, "Dark
-    frames").
+    A frame that gives fewer than n_features corners at FAST_THRESHOLD (dark, low contrast) is
+    detected and described again on normalise_contrast(frame). The simulator's `dark` frames
+    (gain 0.3, ~4 DN of noise, std 8–13 DN) give 85–900 corners at 20, and before this SLAM never
+    initialised in half the dark flights; its other scenarios give ≥ 1310 and are never touched.
+    Lowering the FAST threshold instead (ORB-SLAM's minThFAST fallback) found corners but matched
+    them poorly (dark seed 0, consecutive frames: 148 matches at 12 against 276 here), and at 7 the noise
+    corners made a dark track fail the GNSS bootstrap (docs/BENCHMARKS.md, "Dark frames").
 
     Harris ranking kept: FAST score saved ~1.5 ms/frame but doubled-to-tenfold the trajectory
     error on the nominal sequence in our runs.
     """
-    orb, orb_low = (cv2.ORB_create(nfeatures=int(1.5 * n_features), scaleFactor=1.2, nlevels=8, fastThreshold=t,
-                                   scoreType=cv2.ORB_HARRIS_SCORE) for t in (FAST_THRESHOLD, FAST_THRESHOLD_MIN))
+    orb = cv2.ORB_create(nfeatures=int(1.5 * n_features), scaleFactor=1.2, nlevels=8, fastThreshold=FAST_THRESHOLD,
+                         scoreType=cv2.ORB_HARRIS_SCORE)
 
     def extract(image: np.ndarray) -> Features:
         gray = to_gray(image)
         kps = orb.detect(gray, None)
-        if len(kps) < n_features:  # low contrast: ORB-SLAM's minThFAST fallback, over the whole image
-            kps = orb_low.detect(gray, None)
+        if len(kps) < n_features:  # low contrast: detect and describe on the normalised frame
+            gray = normalise_contrast(gray)
+            kps = orb.detect(gray, None)
         if not kps:
             return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
         uv = np.array([k.pt for k in kps])

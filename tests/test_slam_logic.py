@@ -217,25 +217,25 @@ def test_torch_and_cpu_features_both_match_a_warped_image():
         assert ok.sum() > 100 and ok.mean() > 0.8
 
 
-def test_cpu_features_fill_their_budget_on_a_dark_image_and_still_match():
-    """A dark frame (the simulator's `dark` gain 0.3, read noise): FAST at FAST_THRESHOLD finds
-    too few corners, the fallback threshold fills the budget, and the corners still match under a
-    warp (with FAST_THRESHOLD alone: 468 features, 249 correct matches)."""
+def test_cpu_features_on_a_dark_image_come_from_its_normalised_contrast_and_still_match():
+    """A dark frame (gain 0.15, read noise: std 11 DN like the simulator's `dark` frames): FAST at
+    FAST_THRESHOLD finds 34 corners (10 correct matches under a warp); detected and described on
+    the normalised frame, 450+ features and 240 correct matches."""
     from slam.features import FAST_THRESHOLD
 
     cam = CameraModel(512, 512, K)
     rng = np.random.default_rng(0)
     img = cv2.resize(data.camera(), (512, 512)).astype(float)
     M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
-    dark = [np.clip(0.3 * im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8)
+    dark = [np.clip(0.15 * im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8)
             for im in (img, cv2.warpAffine(img, M, (512, 512)))]
-    assert len(cv2.ORB_create(nfeatures=1200, fastThreshold=FAST_THRESHOLD).detect(dark[0])) < 800
+    assert len(cv2.ORB_create(nfeatures=1200, fastThreshold=FAST_THRESHOLD).detect(dark[0])) < 100
     a, b = (make_orb_cpu(cam, 800)(im) for im in dark)
-    assert len(a) == 800 and len(b) == 800
+    assert len(a) > 300 and len(b) > 300
     pairs = match_bf(a.desc, b.desc, ratio=0.8)
     pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
     ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
-    assert ok.sum() > 300 and ok.mean() > 0.85
+    assert ok.sum() > 150 and ok.mean() > 0.85
 
 
 def test_place_index_forgets_dropped_keyframes():
