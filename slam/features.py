@@ -67,7 +67,8 @@ def normalise_contrast(gray: np.ndarray) -> np.ndarray:
     affine intensity map to std LOW_CONTRAST_STD_DN about mid-grey (gain ≤ LOW_CONTRAST_MAX_GAIN).
     FAST's fixed threshold then stands in the same ratio to the scene's contrast as on a normal
     frame, and the denoising keeps sensor noise from making corners. (BRIEF compares intensities,
-    so an affine map leaves descriptors of well-lit and stretched frames comparable.)"""
+    so the stretch leaves descriptors comparable with a well-lit frame's; the blur changes them a
+    little: ORB blurs before describing anyway.)"""
     blurred = cv2.GaussianBlur(gray, (0, 0), LOW_CONTRAST_BLUR_PX)
     mean, std = (float(v[0, 0]) for v in cv2.meanStdDev(blurred))
     gain = min(LOW_CONTRAST_STD_DN / max(std, 1e-6), LOW_CONTRAST_MAX_GAIN)
@@ -82,8 +83,8 @@ def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray],
     (gain 0.3, ~4 DN of noise, std 8–13 DN) give 85–900 corners at 20, and before this SLAM never
     initialised in half the dark flights; its other scenarios give ≥ 1310 and are never touched.
     Lowering the FAST threshold instead (ORB-SLAM's minThFAST fallback) found corners but matched
-    them poorly (dark seed 0, consecutive frames: 148 matches at 12 against 276 here), and at 7 the noise
-    corners made a dark track fail the GNSS bootstrap (docs/BENCHMARKS.md, "Dark frames").
+    them poorly (dark seed 0, consecutive frames: 148 matches at 12 against 276 here), and at 7 a
+    dark track failed the GNSS bootstrap (docs/BENCHMARKS.md, "Dark frames").
 
     Harris ranking kept: FAST score saved ~1.5 ms/frame but doubled-to-tenfold the trajectory
     error on the nominal sequence in our runs.
