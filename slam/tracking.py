@@ -121,7 +121,7 @@ class Tracker:
     T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
     T_vel: np.ndarray = field(default_factory=lambda: np.eye(4))  # T_cur_prev of the last step
     frames_since_kf: int = 0
-    ref_kf_points: int = 0
+    most_tracked_since_kf: int = 0  # the inlier-ratio keyframe rule's reference (_track)
     R_kf_cam_slam: np.ndarray = field(default_factory=lambda: np.eye(3))  # orientation of the last keyframe
     lost_frames: int = 0
     _init: _Init | None = None
@@ -187,7 +187,7 @@ class Tracker:
         # 20-frame rule made most keyframes: on the demo flight 30 keyframes in 45 s, inliers
         # sagging from ~150 to ~50 before each, and pose steps of 1-2.5 m when the next local map
         # arrived (docs/BENCHMARKS.md, "Keyframe reference").
-        self.ref_kf_points = max(self.ref_kf_points, n)
+        self.most_tracked_since_kf = max(self.most_tracked_since_kf, n)
         if self._need_keyframe(est.T_cam_slam, n):
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
@@ -205,7 +205,7 @@ class Tracker:
         k = self.frames_since_kf
         rotated_deg = np.degrees(np.arccos(np.clip((np.trace(T_cam_slam[:3, :3] @ self.R_kf_cam_slam.T) - 1) / 2, -1, 1)))
         return (k >= c.max_frames_between_keyframes
-                or (n_inliers < c.keyframe_inlier_ratio * self.ref_kf_points and k >= c.min_frames_between_keyframes
+                or (n_inliers < c.keyframe_inlier_ratio * self.most_tracked_since_kf and k >= c.min_frames_between_keyframes
                     and not self.shared.mapping_busy)
                 or (rotated_deg > c.keyframe_max_rotation_deg and k >= 1 and self.shared.pending_keyframes < 2)
                 or (n_inliers < 2 * c.min_inliers and k >= 1 and self.shared.pending_keyframes < 2))
@@ -213,7 +213,7 @@ class Tracker:
     def _keyed(self, T_cam_slam: np.ndarray, n_inliers: int) -> None:
         """Bookkeeping after a keyframe was made at pose T_cam_slam."""
         self.frames_since_kf = 0
-        self.ref_kf_points = n_inliers
+        self.most_tracked_since_kf = n_inliers
         self.R_kf_cam_slam = T_cam_slam[:3, :3].copy()
         self.shared.mapping_busy = True
 

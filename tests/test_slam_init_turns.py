@@ -94,7 +94,7 @@ def test_init_waits_while_the_image_motion_is_mostly_rotation():
 
 def _tracker() -> Tracker:
     t = Tracker(K, W_PX, H_PX, SlamConfig(), extract=lambda img: None)
-    t.frames_since_kf, t.ref_kf_points = 1, 100
+    t.frames_since_kf, t.most_tracked_since_kf = 1, 100
     t._keyed(aerial_T_cam_world(0.0), 100)
     t.shared.mapping_busy = True  # mapping still busy: the inlier-ratio rule may not fire
     t.frames_since_kf = 2
@@ -127,4 +127,4 @@ def test_keyframe_when_inliers_fall_below_the_ratio_of_the_most_tracked_since_th
 
     assert [new_keyframe(x, n) for x, n in ((0.7, 160), (1.4, 150), (2.1, 125))] == [False, False, False]
     assert new_keyframe(2.8, 115)  # < 0.75 × 160
-    assert t.ref_kf_points == 115  # the count at the new keyframe, until its own points raise it
+    assert t.most_tracked_since_kf == 115  # the count at the new keyframe, until its own points raise it
