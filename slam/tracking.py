@@ -121,7 +121,7 @@ class Tracker:
     T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
     T_vel: np.ndarray = field(default_factory=lambda: np.eye(4))  # T_cur_prev of the last step
     frames_since_kf: int = 0
-    most_tracked_since_kf: int = 0  # the inlier-ratio keyframe rule's reference (_track)
+    most_tracked_since_kf: int = 0  # the inlier-ratio keyframe rule's reference (_accept)
     R_kf_cam_slam: np.ndarray = field(default_factory=lambda: np.eye(3))  # orientation of the last keyframe
     lost_frames: int = 0
     _init: _Init | None = None
@@ -205,8 +205,8 @@ class Tracker:
         k = self.frames_since_kf
         rotated_deg = np.degrees(np.arccos(np.clip((np.trace(T_cam_slam[:3, :3] @ self.R_kf_cam_slam.T) - 1) / 2, -1, 1)))
         return (k >= c.max_frames_between_keyframes
-                or (n_inliers < c.keyframe_inlier_ratio * self.most_tracked_since_kf and k >= c.min_frames_between_keyframes
-                    and not self.shared.mapping_busy)
+                or (n_inliers < c.keyframe_inlier_ratio * self.most_tracked_since_kf
+                    and k >= c.min_frames_between_keyframes and not self.shared.mapping_busy)
                 or (rotated_deg > c.keyframe_max_rotation_deg and k >= 1 and self.shared.pending_keyframes < 2)
                 or (n_inliers < 2 * c.min_inliers and k >= 1 and self.shared.pending_keyframes < 2))
 
