@@ -119,14 +119,16 @@ def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarra
     observe it (0 when one does). A point's depth error grows as 1/parallax (a feature's bearing
     noise of ~1 mrad gives ~0.5 m at 15° and 100–150 m range), so alignment can leave out the
     poorly triangulated ones. Vectorised over the flattened observations: a loop per point took
-    80 % of a full map snapshot, which runs on the tracking thread (docs/BENCHMARKS.md, "Map
-    snapshot"). Call with m.lock held."""
+    80 % of a full map snapshot, which runs on the tracking thread (docs/BENCHMARKS.md,
+    "Fine-tuning cost": "Map snapshot, vectorised parallax"). Call with m.lock held."""
     pts = [m.points[p] for p in pids]
     P = np.array([mp.p_slam for mp in pts], float).reshape(-1, 3)
     n_obs = np.fromiter((len(mp.obs) for mp in pts), np.int64, len(pts))
     kf = np.fromiter(chain.from_iterable(mp.obs for mp in pts), np.int64, int(n_obs.sum()))
     owner = np.repeat(np.arange(len(pts)), n_obs)
-    ids = np.array(m.kf_ids(), np.int64)
+    # centres of the observing keyframes only: the map also holds up to max_trajectory_keyframes
+    # forgotten ones (pose only), and this runs on the tracking thread
+    ids = np.array([k for k in np.unique(kf).tolist() if k in m.keyframes], np.int64)
     known = np.isin(kf, ids)  # an observation of a keyframe the map no longer holds does not count
     kf, owner = kf[known], owner[known]
     first = np.full(len(pts), np.iinfo(np.int64).max)
