@@ -79,11 +79,15 @@ class GisModel:
 
     def crop(self, center_enu: np.ndarray, size_m: float) -> np.ndarray:
         """Indices of points inside the horizontal square of side size_m centred at center_enu (any height)."""
-        order, keys, lo, ncol = self._grid
         c = np.asarray(center_enu, float)[:2]
-        half = size_m / 2.0
-        i0, j0 = (np.floor((c - half) / INDEX_CELL_M).astype(np.int64) - lo)
-        i1, j1 = (np.floor((c + half) / INDEX_CELL_M).astype(np.int64) - lo)
+        return self.crop_box(c - size_m / 2.0, c + size_m / 2.0)
+
+    def crop_box(self, lo_en: np.ndarray, hi_en: np.ndarray) -> np.ndarray:
+        """Indices of points whose east/north lie in [lo_en, hi_en] (m, inclusive; any height)."""
+        order, keys, lo, ncol = self._grid
+        lo_en, hi_en = np.asarray(lo_en, float)[:2], np.asarray(hi_en, float)[:2]
+        i0, j0 = (np.floor(lo_en / INDEX_CELL_M).astype(np.int64) - lo)
+        i1, j1 = (np.floor(hi_en / INDEX_CELL_M).astype(np.int64) - lo)
         i0, i1 = max(i0, 0), min(i1, ncol - 1)
         if i1 < i0:
             return np.zeros(0, dtype=np.int64)
@@ -94,7 +98,7 @@ class GisModel:
             return np.zeros(0, dtype=np.int64)
         idx = order[np.concatenate([np.arange(s, e) for s, e in zip(starts, ends)])]
         p = self.points_enu[idx, :2]
-        inside = np.all(np.abs(p - c) <= half, axis=1)
+        inside = np.all((p >= lo_en) & (p <= hi_en), axis=1)
         return idx[inside]
 
 
