@@ -34,7 +34,7 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   thing, so they are not added):
   - SYS_OFFSET_FRACTION × the robust (MAD) residual scale of all matched points, scaled by the
     cloud's own residuals, so a clean cloud (synthetic, 5 cm noise) keeps a centimetre σ and a
-    real one (σ_MAD 0.3–0.55 m inside the final correspondence window) gets 0.5–0.8 m;
+    real one (σ_MAD 0.3–0.55 m inside the final correspondence window) gets 0.45–0.8 m;
   - the basin spread: ICP is restarted from its own solution shifted MULTISTART_M
     east/north/west/south; ``spread_m`` is the largest disagreement of the restarts. On the
     real clouds the optimum moved 0.3–3 m between restarts (stale model: stable wrong optima
@@ -128,7 +128,7 @@ log = logging.getLogger(__name__)
 ICP_ITERATIONS_PER_LEVEL = 12
 KERNEL_FRACTION = 0.5          # Tukey width per level = max(robust_kernel_m, this × correspondence distance)
 RANDOM_INFLATION = 4.0         # variance factor of σ²H⁻¹ for correlated neighbouring points
-SYS_OFFSET_FRACTION = 1.5      # systematic translation 1-σ ≥ this × σ_MAD (module doc: 0.75 added to the spread left restart-free registrations at NEES 4.4–8.5)
+SYS_OFFSET_FRACTION = 1.5      # systematic translation 1-σ ≥ this × σ_MAD (module doc: 0.75, added to the spread, gave NEES 4.4–8.5)
 SYS_SCALE_SIGMA = 0.005        # scale mismatch between a cloud and its trajectory (relative 1-σ)
 MULTISTART_M = 3.0             # basin check: ICP restarted from its solution shifted this far east/north/west/south
 MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 90.0, 180.0, 270.0))
@@ -307,7 +307,8 @@ class _CropCache:
         p, n, tile = p[order], n[order], tile[order]
         for key in keys:
             lo, hi = np.searchsorted(tile[:, 1], key[1], "left"), np.searchsorted(tile[:, 1], key[1], "right")
-            a, b = lo + np.searchsorted(tile[lo:hi, 0], key[0], "left"), lo + np.searchsorted(tile[lo:hi, 0], key[0], "right")
+            row = tile[lo:hi, 0]
+            a, b = lo + np.searchsorted(row, key[0], "left"), lo + np.searchsorted(row, key[0], "right")
             self._tiles[key] = (p[a:b], n[a:b])
 
 
