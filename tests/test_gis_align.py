@@ -365,6 +365,20 @@ def test_cached_crop_gives_the_same_registration_as_a_fresh_crop(city):
     assert err < 3 * reg_cached.sigma_m and err < 0.2
 
 
+def test_finetune_threads_do_not_change_the_registration_and_the_limit_ends_with_it(city):
+    """The KD-tree searches are exact whatever the OpenMP thread count, and the limit a registration
+    sets on pykdtree's OpenMP runtime holds only while it runs."""
+    from threadpoolctl import ThreadpoolController
+    openmp = ThreadpoolController().select(user_api="openmp")
+    before = [lib["num_threads"] for lib in openmp.info()]
+    assert before, "pykdtree's OpenMP runtime is not loaded"
+    c = np.array([27.0, -10.0, 0.0])
+    one = _register_at(FineTuner(city, AlignmentConfig(finetune_threads=1)), city, c)
+    every = _register_at(FineTuner(city, AlignmentConfig(finetune_threads=0)), city, c)
+    _same_registration(one, every)
+    assert [lib["num_threads"] for lib in ThreadpoolController().select(user_api="openmp").info()] == before
+
+
 def test_registration_near_the_crop_border_recrops(city):
     """When the next registration's square (plus the correspondence distance) leaves the cached
     crop, a new crop is built around it, and it registers as a fresh tuner does."""

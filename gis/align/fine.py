@@ -6,7 +6,8 @@ The crop is made of 25 m tiles voxelised once on a global grid and cached; its K
 while the next registration needs no tile outside it, and any crop holding a registration's tiles
 gives it the same correspondences (_CropCache).
 
-- Correspondences: nearest GIS point (scipy cKDTree, C, vectorised queries), coarse-to-fine
+- Correspondences: nearest GIS point (pykdtree, C, vectorised queries; ``finetune_threads``
+  OpenMP threads), coarse-to-fine
   distances (max_correspondence_m, /2, /4) with a Tukey kernel that shrinks with them
   (max(robust_kernel_m, ½ · distance)); a fixed 0.5 m kernel gave zero weight to every residual
   from a 3 m guess and the ICP never moved.
@@ -93,8 +94,9 @@ the truth it stays at 0.15 m. 0 of 239 accepted registrations were beyond 3σ (l
 priors are refused. With a FINE prior (covariance intersection) the gain is smaller still. The
 limit is the SLAM cloud (numbers above), not the solver.
 
-Cost (issue 5): the KD-tree query of each ICP iteration dominates (≈0.5 µs per point; real SLAM
-crops hold 200–900 points after the voxel filter, and 5 ICPs × up to 36 iterations run). Levels
+Cost (issue 5): the KD-tree query of each ICP iteration dominates (pykdtree 0.28 µs per point,
+scipy's cKDTree 0.36, identical neighbours; real SLAM crops hold 200–900 points after the voxel
+filter, and 5 ICPs × up to 36 iterations run). Levels
 stop once a step moves no point more than ICP_STEP_TOL_M; on real clouds the IRLS still creeps by
 centimetres at the end of a level, so most levels run their 12 iterations, as before. Measured
 on 28 real-SLAM map snapshots (nominal + stale, 400 frames, 7 priors each): thread CPU 135 → 80 ms
@@ -114,7 +116,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import open3d as o3d
+from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
+from threadpoolctl import ThreadpoolController
 from scipy.spatial.transform import Rotation
 
 from gis.config import AlignmentConfig
@@ -225,8 +229,8 @@ class _Crop:
     tile_m: float
     points: np.ndarray
     normals: np.ndarray
-    tree: cKDTree
-    tree_en: cKDTree                 # the same points, horizontal coordinates only
+    tree: KDTree                     # pykdtree: the nearest-neighbour searches of every ICP iteration
+    tree_en: cKDTree                 # the same points, horizontal coordinates only (radius searches)
 
     def covers(self, box: tuple[int, int, int, int]) -> bool:
         i0, j0, i1, j1 = self.box
@@ -283,7 +287,8 @@ class _CropCache:
                 self._tiles.popitem(last=False)
             pts = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3))
             nrm = np.concatenate([n for _, n in parts]) if parts else np.zeros((0, 3))
-            crop = _Crop(box, self.tile_m, pts, nrm, cKDTree(pts, balanced_tree=False), cKDTree(pts[:, :2], balanced_tree=False))
+            crop = _Crop(box, self.tile_m, pts, nrm, KDTree(np.ascontiguousarray(pts)),
+                         cKDTree(pts[:, :2], balanced_tree=False))
             self._last[slot] = crop
             self.n_built += 1
             return crop
@@ -320,6 +325,7 @@ class FineTuner:
         self._T_enu_ecef = self._T_ecef_enu.inverse()
         _ = model._grid  # build the crop index now, not in the first (timed) refine
         self._crops = _CropCache(model, self.config.target_voxel_m)
+        self._threadpools = ThreadpoolController()  # pykdtree's OpenMP runtime, limited per registration
 
     def refine(self, points_slam: np.ndarray, initial: Alignment, t_s: float, reset_counter: int,
                center_slam: np.ndarray | None = None, map_id: int = 0) -> Alignment | None:
@@ -336,7 +342,13 @@ class FineTuner:
         (module doc). camera_h_ell_m: the camera's ellipsoidal height from the barometer; with it,
         the SLAM height of the camera over the points near its nadir is checked against the
         barometric height over the model there (nadir_scale_ratio), and a map whose scale under the
-        camera differs from the alignment's is refused with SCALE_MISMATCH_REASON."""
+        camera differs from the alignment's is refused with SCALE_MISMATCH_REASON. The KD-tree
+        searches use ``finetune_threads`` OpenMP threads (the limit holds in the calling thread only)."""
+        with self._threadpools.limit(limits=self.config.finetune_threads or None, user_api="openmp"):
+            return self._register(points_slam, initial, t_s, reset_counter, center_slam, map_id, camera_h_ell_m)
+
+    def _register(self, points_slam: np.ndarray, initial: Alignment, t_s: float, reset_counter: int,
+                  center_slam: np.ndarray | None, map_id: int, camera_h_ell_m: float | None) -> Registration:
         t0 = time.perf_counter()
         cfg = self.config
         pts = np.asarray(points_slam, float).reshape(-1, 3)
@@ -608,7 +620,7 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
     """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) over [rot, trans, log-scale] in
     coordinates centred at c, from T0.
 
-    Each iteration: one cKDTree query (C) for the correspondences, then one Gauss–Newton step of
+    Each iteration: one KD-tree query (C) for the correspondences, then one Gauss–Newton step of
     digital-twin Eq. 2 with the Jacobian rows A_j of Eq. 9 extended by the scale column n_j·a_j. A level ends when a step moves
     no cloud point more than ICP_STEP_TOL_M (10× below the σ floor)."""
     s, R, t = T0.scale, T0.R, T0.t
@@ -652,7 +664,7 @@ def _evaluate(src: np.ndarray, crop: _Crop, c: np.ndarray, T: Sim3, cfg: Alignme
 def _matches(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
              max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Moved source points x = s·R·p + t (centred at c) whose nearest model point b lies within
-    max_d (one cKDTree query), the model normals n there and the point-to-plane residuals
+    max_d (one KD-tree query), the model normals n there and the point-to-plane residuals
     r = n·(x − b) of digital-twin Eq. 2."""
     x = s * src @ R.T + t
     d, j = crop.tree.query(x + c, distance_upper_bound=max_d)
