@@ -31,7 +31,8 @@ class Alignment:
     conditioned; gis.globalizer propagates it to the camera with the lever arm from there. sigma_m: 1-σ position uncertainty (metres) the alignment contributes at the
     map centre along the weakest direction. reset_counter / map_id: the SLAM map it applies to.
     fitness: fraction of SLAM points with a model correspondence; rmse_m: inlier RMSE.
-    center_slam: (3,) SLAM-frame point the registration was centred on (its crop centre), or None;
+    center_slam: (3,) SLAM-frame point the registration was centred on (its crop centre; for a GNSS
+    fit, the camera at its newest pair, where SLAM drift beyond the fitted track starts), or None;
     scale_sigma: relative 1-σ of the similarity's scale (monocular scale), dimensionless.
     """
 

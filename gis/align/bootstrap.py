@@ -16,6 +16,15 @@ Integrity: GNSS errors are correlated over tens of seconds (multipath, atmospher
 N fixes does not shrink the common error by √N. The translation covariance therefore never drops
 below the receiver's own reported accuracy (bias_sigma_h_m / bias_sigma_v_m), and a fit whose
 residuals are too large for that accuracy (a distorted SLAM track) is refused.
+
+Centre: the fit is expressed (covariance propagated with its lever arm) at the camera of the
+newest pair, not at the pairs' centroid, because the SLAM drift a registration prior or a fix
+adds with distance from an alignment's centre starts where the fitted track ends. At the
+centroid, a 13 m/s flight's 30 s of pairs put the crop centre ~100 m away, and 2 % drift over it
+made every `fast` registration prior too vague for ICP (2.7–3.8 m). Measured on captured flights
+(docs/BENCHMARKS.md, "GNSS fits expressed where the track ends"): GNSS priors at the crop centre
+claimed 1.84 m horizontally with mean NEES 0.42 (calibrated: 3) and now 0.88 m with 1.24; the 8
+`fast` registrations of seeds 0–3 were accepted, none beyond 99 %.
 """
 from __future__ import annotations
 
@@ -100,7 +109,20 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     if w[0] <= 1e-12 * w[-1]:
         raise DegenerateAlignment("GNSS trajectory is collinear: rotation about it is undetermined")
     cov7 = (V / w) @ V.T
-    cov = cov7[:6, :6].copy()
+    # Expressed at the newest pair, not at the centroid: the fit holds along the whole track, so
+    # the SLAM drift that a prior or a fix adds with distance from the alignment's centre
+    # (gis.align.fine._prior_at, gis.globalizer) starts where the track ends. A perturbation
+    # [ω, τ, log s] about the ENU origin (the GNSS centroid) moves a point at d by
+    # τ − [d]×ω + d·log s: the covariance there is J cov7 Jᵀ.
+    i_new = int(np.argmax(t_pairs_s)) if t_pairs_s is not None else n - 1
+    d = T.apply(p_slam[i_new][None])[0]
+    J = np.eye(7)
+    J[3:6, :3], J[3:6, 6] = -_skew(d[None])[0], d
+    cov7 = J @ cov7 @ J.T
+    lat_n, lon_n, _ = ecef_to_geodetic(frame.enu_to_ecef(d[None])[0])
+    B = LocalFrame(float(lat_n), float(lon_n)).R_ecef_enu.T @ frame.R_ecef_enu  # centroid ENU → ENU there (types.Alignment)
+    B6 = np.kron(np.eye(2), B)
+    cov = B6 @ cov7[:6, :6] @ B6.T
     cov[3:, 3:] += np.diag([bias_sigma_h_m**2 / 2, bias_sigma_h_m**2 / 2, bias_sigma_v_m**2])
     sig_rot_deg = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])))
     if sig_rot_deg > max_sigma_rot_deg:
@@ -112,7 +134,7 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
         reset_counter=reset_counter, information_6x6=np.linalg.inv(cov),
         sigma_m=float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])),
         rmse_m=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))), n_points=n, map_id=map_id,
-        center_slam=p_slam.mean(axis=0), scale_sigma=float(np.sqrt(cov7[6, 6])),
+        center_slam=p_slam[i_new].copy(), scale_sigma=float(np.sqrt(cov7[6, 6])),
     )
 
 
