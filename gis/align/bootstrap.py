@@ -127,12 +127,13 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     # not rigid, and a rigid fit to it is worst at its ends (the `stale` flight of seed 2: ~2 m off
     # at the newest pair, claiming 1.3 m). The residuals of the newest MISFIT_WINDOW_S of pairs
     # show that local offset (plus that stretch's correlated GNSS error): their mean, per axis, is
-    # added to the variance there. (Over 10 s the residuals of a bent track cross zero and
-    # showed a third of it.)
+    # added to the variance there (without pair times: the last 10 pairs). Over 10 s the residuals
+    # of a bent track cross zero and showed a third of it.
     recent = (t_pairs_s >= t_pairs_s[i_new] - MISFIT_WINDOW_S) if t_pairs_s is not None else np.arange(n) >= n - 10
     cov7[3:6, 3:6] += np.diag(res[recent].mean(axis=0) ** 2)
     lat_n, lon_n, _ = ecef_to_geodetic(frame.enu_to_ecef(d[None])[0])
-    B = LocalFrame(float(lat_n), float(lon_n)).R_ecef_enu.T @ frame.R_ecef_enu  # centroid ENU → ENU there (types.Alignment)
+    # centroid ENU axes → the local ENU at the new centre (gis.types.Alignment's convention)
+    B = LocalFrame(float(lat_n), float(lon_n)).R_ecef_enu.T @ frame.R_ecef_enu
     B6 = np.kron(np.eye(2), B)
     cov = B6 @ cov7[:6, :6] @ B6.T
     cov[3:, 3:] += np.diag([bias_sigma_h_m**2 / 2, bias_sigma_h_m**2 / 2, bias_sigma_v_m**2])

@@ -118,8 +118,8 @@ import numpy as np
 import open3d as o3d
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
-from threadpoolctl import ThreadpoolController
 from scipy.spatial.transform import Rotation
+from threadpoolctl import ThreadpoolController
 
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
