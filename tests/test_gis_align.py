@@ -379,6 +379,18 @@ def test_finetune_threads_do_not_change_the_registration_and_the_limit_ends_with
     assert [lib["num_threads"] for lib in ThreadpoolController().select(user_api="openmp").info()] == before
 
 
+def test_registration_and_scale_check_outside_the_model_are_refused_clearly(city):
+    """5 km beyond the 600 m model the crop is empty: a clear refusal, not a KD-tree error."""
+    far = np.array([5000.0, 5000.0, 0.0])
+    cam = far + np.array([0.0, 0.0, 60.0])
+    p_enu = slam_like_cloud(city, np.array([20.0, -10, 0]), 60, 3000, noise_m=0.05, seed=2) + far
+    tuner = FineTuner(city)
+    reg = tuner.register(_slam(p_enu), _prior_about(cam, (0.3, -0.2, 0.1)), 1.0, 0, center_slam=_slam(cam))
+    assert reg.alignment is None and "outside the model" in reg.reason
+    chk = tuner.check_scale(_slam(p_enu), _prior_about(cam, (0.0, 0.0, 0.0)), _slam(cam), ORIGIN.h0_ellipsoid_m + 60.0)
+    assert chk.n_points == 0 and not chk.mismatch  # no model under the camera: no verdict
+
+
 def test_registration_near_the_crop_border_recrops(city):
     """When the next registration's square (plus the correspondence distance) leaves the cached
     crop, a new crop is built around it, and it registers as a fresh tuner does."""

@@ -229,7 +229,8 @@ class _Crop:
     tile_m: float
     points: np.ndarray
     normals: np.ndarray
-    tree: KDTree                     # pykdtree: the nearest-neighbour searches of every ICP iteration
+    tree: KDTree | None              # pykdtree (ICP correspondences); None for an empty crop (pykdtree
+                                     # refuses one; registrations stop at the GIS-crop gate first)
     tree_en: cKDTree                 # the same points, horizontal coordinates only (radius searches)
 
     def covers(self, box: tuple[int, int, int, int]) -> bool:
@@ -287,7 +288,7 @@ class _CropCache:
                 self._tiles.popitem(last=False)
             pts = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3))
             nrm = np.concatenate([n for _, n in parts]) if parts else np.zeros((0, 3))
-            crop = _Crop(box, self.tile_m, pts, nrm, KDTree(np.ascontiguousarray(pts)),
+            crop = _Crop(box, self.tile_m, pts, nrm, KDTree(pts) if len(pts) else None,
                          cKDTree(pts[:, :2], balanced_tree=False))
             self._last[slot] = crop
             self.n_built += 1
