@@ -55,16 +55,22 @@ def test_attitude_makes_a_straight_flight_solvable():
     assert a.T_ecef_slam.scale == pytest.approx(T_ENU_SLAM.scale, rel=0.01)
 
 
+def _turning_flight(speed_mps, scale_growth_per_s=0.0, dt=0.2):
+    """30 s at 60 m, a 90° left turn from 10 to 15 s; positions scaled by 1 + scale_growth_per_s·t
+    per step (a monocular track whose scale drifts)."""
+    t = np.arange(0, 30, dt)
+    ang = np.clip((t - 10) / 5, 0, 1) * np.pi / 2
+    v = np.stack([np.cos(ang), np.sin(ang)], 1) * speed_mps * (1 + scale_growth_per_s * t)[:, None]
+    return t, np.c_[np.cumsum(v, 0) * dt, np.full(len(t), 60.0)]
+
+
 def test_fit_is_expressed_at_the_newest_pair_where_slam_drift_starts():
     """A 13 m/s flight (the `fast` scenario): 30 s of GNSS pairs span 390 m. The alignment is
     expressed at the newest pair (found by time: the pairs come out of order here), so a fix there
     carries the fit's own σ, not 2 % SLAM drift over the ~195 m back to the pairs' centroid (which
     put `fast`'s registration priors beyond ICP's basin), and the truth is within 3σ there."""
     rng = np.random.default_rng(7)
-    dt = 0.2
-    t = np.arange(0, 30, dt)
-    ang = np.clip((t - 10) / 5, 0, 1) * np.pi / 2
-    p = np.c_[np.cumsum(np.stack([np.cos(ang), np.sin(ang)], 1) * 13.0, 0) * dt, np.full(len(t), 60.0)]
+    t, p = _turning_flight(13.0)
     p_slam = T_SLAM_ENU.apply(p)
     p_gnss = p + np.r_[rng.normal(0, 0.5, (len(t), 2)).T, rng.normal(0, 0.8, len(t))[None]].T
     order = rng.permutation(len(t))
@@ -90,12 +96,8 @@ def test_a_track_whose_scale_drifts_claims_its_misfit_at_the_newest_pair():
     the fit's own covariance. The mean residual of the newest 3 s of pairs, added there, brings it
     to ≈2 (χ²(3) 95 %: 7.8)."""
     rng = np.random.default_rng(3)
-    dt = 0.2
-    t = np.arange(0, 30, dt)
-    ang = np.clip((t - 10) / 5, 0, 1) * np.pi / 2
-    v = np.stack([np.cos(ang), np.sin(ang)], 1) * 8.0
-    p = np.c_[np.cumsum(v, 0) * dt, np.full(len(t), 60.0)]
-    p_bent = np.c_[np.cumsum(v * (1 + 0.004 * t)[:, None], 0) * dt, np.full(len(t), 60.0)]  # SLAM's scale drifts
+    t, p = _turning_flight(8.0)
+    _, p_bent = _turning_flight(8.0, scale_growth_per_s=0.004)  # SLAM's scale drifts
     p_gnss = p + rng.normal(0, 0.3, p.shape)
     a = gnss_bootstrap(T_SLAM_ENU.apply(p_bent), ORIGIN.enu_to_ecef(p_gnss), t[-1], sigma_gnss_m=0.3,
                        bias_sigma_h_m=0.3, bias_sigma_v_m=0.3,

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gis.geodesy import LocalFrame, ecef_to_geodetic
+from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic
 from gis.sim3 import Sim3, compose, umeyama
 from gis.types import Alignment, AlignmentSource
 from gis.align.fine import enu_sim3
@@ -133,7 +133,7 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     cov7[3:6, 3:6] += np.diag(res[recent].mean(axis=0) ** 2)
     lat_n, lon_n, _ = ecef_to_geodetic(frame.enu_to_ecef(d[None])[0])
     # centroid ENU axes → the local ENU at the new centre (gis.types.Alignment's convention)
-    B = LocalFrame(float(lat_n), float(lon_n)).R_ecef_enu.T @ frame.R_ecef_enu
+    B = R_ecef_enu(float(lat_n), float(lon_n)).T @ frame.R_ecef_enu
     B6 = np.kron(np.eye(2), B)
     cov = B6 @ cov7[:6, :6] @ B6.T
     cov[3:, 3:] += np.diag([bias_sigma_h_m**2 / 2, bias_sigma_h_m**2 / 2, bias_sigma_v_m**2])
