@@ -68,8 +68,11 @@ class Globalizer:
             self._v_ecef = None
             self._jump = (0.0, 0.0)
 
-    def update_alignment(self, a: Alignment) -> None:
-        """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe)."""
+    def update_alignment(self, a: Alignment, follows: Alignment | None = None) -> None:
+        """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe).
+        ``follows``: the alignment ``a`` replaces as the same alignment carried along with a moved
+        map (companion.pipeline, _follow_map), so fixes stay continuous: the velocity and SLAM-jump
+        history of the previous fixes carries over instead of starting again."""
         T = a.T_ecef_slam
         c_ecef = T.apply(a.center_slam) if a.center_slam is not None else T.t
         lat, lon, _ = ecef_to_geodetic(c_ecef)
@@ -78,6 +81,8 @@ class Globalizer:
         with self._lock:
             self._alignment = a
             self._cov_center = (c_ecef, R_ecef_enuC, cov6)
+            if follows is not None and self._prev is not None and self._prev[2] is follows:
+                self._prev = (*self._prev[:2], a)
 
     def fix(self, pose: SlamPose) -> GlobalFix | None:
         with self._lock:

@@ -133,6 +133,7 @@ class Tracker:
     _reloc_deadline_t_s: float | None = None
     _gravity: Gravity | None = None  # of the frame being tracked (slam.use_attitude_prior)
     tracked_p_slam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # the last frame's pose inliers (SLAM frame)
+    pose_map: LocalMap | None = None  # the local map the last frame's pose was solved against (None: no pose)
 
     # --- public ---------------------------------------------------------------------------------
     def resume(self, timeout_s: float) -> None:
@@ -156,6 +157,7 @@ class Tracker:
         keyframes carry it to bundle adjustment and a new map is levelled with it."""
         self._gravity = gravity
         self.tracked_p_slam = np.zeros((0, 3))
+        self.pose_map = None
         feats = self.extract(frame.image)
         if self.state == TrackingState.INITIALIZING:
             return self._initialize(frame, feats)
@@ -231,6 +233,7 @@ class Tracker:
         for radius in (self.config.search_radius_px, 3 * self.config.search_radius_px):
             est = self._match_and_solve(feats, lm, T_pred, radius, tree)
             if est is not None:
+                self.pose_map = lm
                 return est
         return None
 
@@ -307,6 +310,7 @@ class Tracker:
                     est = self._track_local_map(feats, sol[0])
                     if est is None or len(est.inlier_pid) < c.reloc_min_inliers:
                         est = self._match_and_solve(feats, lm, sol[0], c.search_radius_px, cKDTree(feats.uv_px))
+                        self.pose_map = lm
                     if est is not None and len(est.inlier_pid) >= c.reloc_min_inliers:
                         self._reloc_map = None
                         self._reloc_timeout_s = self._reloc_deadline_t_s = None
