@@ -11,17 +11,15 @@ trusted) registers the current SLAM map to the GIS model
 GNSS bootstraps one (digital-twin paper §III-D): pairs of (SLAM camera centre, GNSS position) are
 collected while GNSS is trusted and fitted with a similarity.
 
-Alignments ride on a keyframe (beyond the papers): an alignment says where the map around its
-centre lies on the globe, but bundle adjustment keeps moving that map in SLAM coordinates. On
-`nominal` seed 2 one periodic 25-keyframe BA moved the newest keyframes 1.2–1.4 m along the track
-(a flat direction of its cost: 1085 against 1089 for the map before it, which was 0.1 m from the
-truth); the tracked pose followed the moved points and every fix jumped 1.3 m, 0.6 s after GNSS was
-lost, and stayed off until the next registrations (2.1–2.5 m mean after the loss in the 3 of 5
-runs with that BA, against 1.2 m without). So each alignment is tied to the keyframe nearest its
-centre, and when local mapping moves that keyframe, the alignment moves with it (_follow_map).
-
-The pipeline knows no camera device, MAVLink or simulator: callers pass an iterator of
-``PipelineInput`` and a sink; ``companion.app`` wires cameras, the bridge and the simulator.
+Alignments follow their points (beyond the papers): an alignment says where the SLAM points it
+was registered on lie on the globe, but bundle adjustment keeps moving those points in SLAM
+coordinates. On `nominal` seed 2 one periodic 25-keyframe BA moved the newest keyframes 1.2–1.4 m
+along the track (a flat direction of its cost: 1085 against 1089 for the map before it, which was
+0.1 m from the truth); the tracked pose followed the moved points and every fix jumped 1.3 m, 0.6 s
+after GNSS was lost, and stayed off until the next registrations (2.1–2.5 m mean after the loss in
+the 3 of 5 runs with that BA, 1.2 m in the 2 without). So each alignment keeps its points, and when
+local mapping moves them, the alignment moves with them by their least-squares similarity
+(_follow_map): what a registration of the moved points would find, to first order.
 """
 from __future__ import annotations
 
@@ -40,9 +38,10 @@ from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
+from gis.config import AlignmentConfig
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
-from gis.sim3 import Sim3
+from gis.sim3 import Sim3, umeyama
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from mavlink_bridge.monitor import h_acc_of
 from mavlink_bridge.types import GnssSample, GpsFixType
@@ -454,9 +453,23 @@ def _baro_m(prior: AttitudePrior | None) -> float | None:
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
-FOLLOW_MIN_M = 0.05  # a move of the map under the alignment is followed once it shifts the fix this much
+FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
+FOLLOW_MIN_POINTS = 20  # an alignment with fewer points in its crop is not followed
 FOLLOW_EVENT_M = 0.3  # ... and goes into the alignment timeline from this much on
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
+
+
+@dataclass
+class _Cloud:
+    """The SLAM points an alignment describes (Localizer._follow_map): point_ids sorted, p_slam
+    (N, 3) where they were when last followed; version: the local map last compared with; t_s: the
+    registration's time (for a submitted cloud)."""
+
+    alignment: Alignment
+    point_ids: np.ndarray
+    p_slam: np.ndarray
+    version: int = -1
+    t_s: float = math.nan
 
 
 class Localizer:
@@ -484,8 +497,9 @@ class Localizer:
         self._baro_offset_m: float | None = None  # ellipsoidal height − barometric altitude (learned from GNSS)
         self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
-        # (alignment, keyframe id or None, that keyframe's T_slam_cam when last followed): _follow_map
-        self._anchor: tuple[Alignment, int | None, np.ndarray | None] | None = None
+        self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
+        self._submitted: _Cloud | None = None  # the last registration's points, as submitted
+        self.crop_size_m = tuner.config.crop_size_m if tuner is not None else AlignmentConfig().crop_size_m
         self._scale_check_t_s = -math.inf
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
@@ -494,44 +508,65 @@ class Localizer:
             self._accept(initial_alignment, "initial")
 
     def _follow_map(self, pose: SlamPose, alignment: Alignment) -> Alignment:
-        """Carry the alignment along when local mapping moves the map under it (module doc,
-        "Alignments ride on a keyframe"): the current alignment is anchored to the keyframe nearest
-        its centre; when that keyframe's pose changes from T_old to T_new (both T_slam_kf), the
-        alignment becomes T_ecef_slam ∘ D⁻¹ with D = T_new·T_old⁻¹, and its centre D·center_slam, so
-        the anchor's surroundings keep the global position the registration gave them. Followed
-        once the move shifts the camera's fix by FOLLOW_MIN_M; the anchor is let go when its
-        keyframe leaves the local map the frame was tracked against."""
+        """Carry the alignment along when local mapping moves its points (module doc, "Alignments
+        follow their points"). Each alignment keeps the SLAM points it describes (_Cloud): a
+        registration's crop of the submitted map points, else the tracked local map's points in
+        the same crop about its centre. When the local map the pose was solved against holds some
+        of them elsewhere, the similarity S from their old to their new positions (Umeyama 1991;
+        points it does not hold count as unmoved) makes the alignment T_ecef_slam ∘ S⁻¹ and its
+        centre S·center_slam; followed once that shifts this frame's fix by FOLLOW_MIN_M."""
         if alignment.center_slam is None or not pose.state.has_pose:
             return alignment
-        anchor = self._anchor
-        if anchor is None or anchor[0] is not alignment:  # a new alignment: anchor it here
-            kf = self.slam.nearest_keyframe(alignment.center_slam)
-            T_ref = self.slam.keyframe_pose(kf) if kf is not None else None
-            self._anchor = (alignment, kf, T_ref) if T_ref is not None else (alignment, None, None)
+        lm = self.slam.tracked_local_map()
+        cloud = self._cloud
+        if cloud is None or cloud.alignment is not alignment:
+            sub = self._submitted
+            if sub is not None and alignment.source is AlignmentSource.FINE and alignment.t_s == sub.t_s:
+                ids, p = sub.point_ids, sub.p_slam
+            elif lm is not None:
+                keep = self._in_crop(alignment, lm.p_slam)
+                ids, p = lm.point_ids[keep], lm.p_slam[keep]
+            else:
+                ids, p = np.zeros(0, np.int64), np.zeros((0, 3))
+            cloud = self._cloud = _Cloud(alignment, ids, p)
+        if lm is None or lm.version == cloud.version or len(cloud.point_ids) < FOLLOW_MIN_POINTS or len(lm.point_ids) == 0:
             return alignment
-        _, kf, T_ref = anchor
-        if kf is None:
+        cloud.version = lm.version
+        k = np.minimum(np.searchsorted(lm.point_ids, cloud.point_ids), len(lm.point_ids) - 1)
+        held = lm.point_ids[k] == cloud.point_ids
+        p_now = cloud.p_slam.copy()
+        p_now[held] = lm.p_slam[k[held]]
+        if not np.any(p_now != cloud.p_slam):
             return alignment
-        T_now = self.slam.keyframe_pose(kf)
-        if T_now is None:
-            self._anchor = (alignment, None, None)
+        try:
+            S_inv = umeyama(cloud.p_slam, p_now).inverse()  # new SLAM coordinates → old
+        except ValueError:  # degenerate cloud (collinear): leave the alignment where it is
             return alignment
-        D_inv = Sim3.from_matrix(T_ref @ np.linalg.inv(T_now))  # new SLAM coordinates → old
         c = pose.T_slam_cam[:3, 3]
-        moved_m = float(np.linalg.norm(alignment.T_ecef_slam.apply(D_inv.apply(c)) - alignment.T_ecef_slam.apply(c)))
+        moved_m = float(np.linalg.norm(alignment.T_ecef_slam.apply(S_inv.apply(c)) - alignment.T_ecef_slam.apply(c)))
         if moved_m < FOLLOW_MIN_M:
             return alignment
-        followed = replace(alignment, T_ecef_slam=alignment.T_ecef_slam @ D_inv,
-                           center_slam=D_inv.inverse().apply(np.asarray(alignment.center_slam, float)))
+        followed = replace(alignment, T_ecef_slam=alignment.T_ecef_slam @ S_inv,
+                           center_slam=S_inv.inverse().apply(np.asarray(alignment.center_slam, float)))
         with self._lock:
             if self.alignment is not alignment:  # the worker adopted a new one meanwhile
                 return self.alignment
             self.alignment = followed
             self.globalizer.update_alignment(followed, follows=alignment)
-        self._anchor = (followed, kf, T_now)
+        self._cloud = _Cloud(followed, cloud.point_ids, p_now, lm.version)
         if moved_m >= FOLLOW_EVENT_M:
-            self.events.append((pose.t_s, f"alignment follows the map: keyframe {kf} moved, fix moves {moved_m:.2f} m"))
+            self.events.append((pose.t_s, f"alignment follows its points: {int(held.sum())} of {len(held)} moved "
+                                          f"by local mapping, the fix by {moved_m:.2f} m"))
         return followed
+
+    def _in_crop(self, alignment: Alignment, p_slam: np.ndarray) -> np.ndarray:
+        """(N,) bool: points inside the registration crop (crop_size_m square, local level axes)
+        about the alignment's centre, as gis.align.fine crops them."""
+        T = alignment.T_ecef_slam
+        c = T.apply(np.asarray(alignment.center_slam, float))
+        lat, lon, _ = ecef_to_geodetic(c)
+        d_enu = (T.apply(p_slam) - c) @ R_ecef_enu(float(lat), float(lon))
+        return np.all(np.abs(d_enu[:, :2]) <= self.crop_size_m / 2, axis=1)
 
     def _accept(self, alignment: Alignment, why: str) -> None:
         with self._lock:
@@ -657,12 +692,16 @@ class Localizer:
             if (alignment is not None and self.worker is not None and not self.worker.busy.is_set()
                     and self._frames_since_tune >= every):
                 snapshot = self.slam.map_points()
-                points = snapshot.points_slam
+                points, ids = snapshot.points_slam, snapshot.point_ids
                 if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
-                    points = points[snapshot.parallax_deg >= self.min_parallax_deg]
+                    well = snapshot.parallax_deg >= self.min_parallax_deg
+                    points, ids = points[well], ids[well]
                 if len(points) >= self.min_points and self.worker.submit(
                         points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, self._camera_h_ell_m(item.prior)):
                     self._frames_since_tune = 0
+                    crop = self._in_crop(replace(alignment, center_slam=pose.T_slam_cam[:3, 3].copy()), points)
+                    order = np.argsort(ids[crop], kind="stable")
+                    self._submitted = _Cloud(alignment, ids[crop][order], points[crop][order], t_s=pose.t_s)
                 else:  # too few well-triangulated points: retry soon, not every frame (a
                     # snapshot of a big map costs tens of ms on this, the tracking, thread)
                     self._frames_since_tune = every - RETRY_FRAMES

@@ -54,18 +54,12 @@ class MapPoint:
 
 @dataclass(frozen=True)
 class LocalMap:
-    """Read-only arrays the tracking thread matches against (swapped atomically, never mutated).
-
-    keyframe_ids / T_cam_slam_kf: (K,) ids and (K, 4, 4) poses of the keyframes it was built from,
-    as local mapping had them then (what downstream anchors to the map read, see
-    SlamSystem.keyframe_pose)."""
+    """Read-only arrays the tracking thread matches against (swapped atomically, never mutated)."""
 
     point_ids: np.ndarray
     p_slam: np.ndarray
     desc: np.ndarray
     version: int
-    keyframe_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    T_cam_slam_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 @dataclass(frozen=True)
@@ -189,11 +183,8 @@ class SlamMap:
             if kf is not None:
                 ids.update(kf.point_ids[kf.point_ids >= 0].tolist())
         pids = np.array(sorted(i for i in ids if i in self.points), dtype=np.int64)
-        kfs = [k for k in kf_ids if k in self.keyframes]
-        kf_ids_arr = np.array(kfs, np.int64)
-        T_kf = np.array([self.keyframes[k].T_cam_slam for k in kfs]).reshape(-1, 4, 4)
         if len(pids) == 0:
-            return LocalMap(pids, np.zeros((0, 3)), np.zeros((0, 32), np.uint8), version, kf_ids_arr, T_kf)
+            return LocalMap(pids, np.zeros((0, 3)), np.zeros((0, 32), np.uint8), version)
         P = np.array([self.points[i].p_slam for i in pids.tolist()])
         D = np.array([self.points[i].desc for i in pids.tolist()])
-        return LocalMap(pids, P, D, version, kf_ids_arr, T_kf)
+        return LocalMap(pids, P, D, version)

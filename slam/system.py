@@ -22,6 +22,7 @@ import numpy as np
 from slam.config import SlamConfig
 from slam.features import make_extractor
 from slam.geometry import inv_T
+from slam.map import LocalMap
 from slam.mapping import LocalMapper
 from slam.persist import LoadedMap, MapFileError, SavedMap, new_map_id, save_map_file, snapshot_map
 from slam.tracking import Gravity, Tracker
@@ -111,27 +112,12 @@ class SlamSystem:
         Call from the thread that calls ``track``."""
         return self.tracker.tracked_p_slam
 
-    def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
-        """T_slam_cam of keyframe ``kf_id`` as the last frame's pose saw it (the keyframes of the
-        local map it was tracked against), or None when the last frame had no pose or that local
-        map does not hold the keyframe. Lock-free: call from the thread that calls ``track``.
-        A keyframe's pose here changes when local mapping or loop closing moves it, in the same
-        frame as the tracked pose follows the moved points."""
-        lm = self.tracker.pose_map
-        if lm is None:
-            return None
-        i = np.flatnonzero(lm.keyframe_ids == kf_id)
-        return inv_T(lm.T_cam_slam_kf[i[0]]) if len(i) else None
-
-    def nearest_keyframe(self, p_slam: np.ndarray) -> int | None:
-        """Id of the keyframe nearest (camera centre) to SLAM point ``p_slam`` among those of the
-        local map the last frame was tracked against, or None (same source as ``keyframe_pose``)."""
-        lm = self.tracker.pose_map
-        if lm is None or len(lm.keyframe_ids) == 0:
-            return None
-        R, t = lm.T_cam_slam_kf[:, :3, :3], lm.T_cam_slam_kf[:, :3, 3]
-        centers = -np.einsum("kji,kj->ki", R, t)  # −Rᵀt per keyframe
-        return int(lm.keyframe_ids[np.argmin(np.linalg.norm(centers - np.asarray(p_slam, float).reshape(1, 3), axis=1))])
+    def tracked_local_map(self) -> LocalMap | None:
+        """The local map (point ids and SLAM positions, as local mapping last published them) the
+        last frame's pose was solved against, or None when that frame had no pose. Lock-free and
+        read-only: call from the thread that calls ``track``. Its positions change when local
+        mapping or loop closing moves the points, in the same frame as the tracked pose follows."""
+        return self.tracker.pose_map
 
     def current_map_key(self) -> tuple[int, int]:
         """(map_id, reset_counter) of the map being tracked now (as in SlamPose)."""

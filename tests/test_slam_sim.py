@@ -86,9 +86,7 @@ def test_map_updates_and_api(nominal):
     with SlamSystem(nominal.camera, cfg) as s:
         poses = [s.track(Frame(nominal.images[i], i / 30, i)) for i in range(90)]
         tracked = s.tracked_points_slam()
-        c_last = poses[-1].T_slam_cam[:3, 3]
-        kf = s.nearest_keyframe(c_last)
-        T_near = s.keyframe_pose(kf)
+        lm = s.tracked_local_map()
         s.wait_mapping()
         ups = s.poll_map_updates()
         snap = s.map_points()
@@ -103,11 +101,10 @@ def test_map_updates_and_api(nominal):
     assert all((u.n_obs >= 2).all() for u in ups)
     assert snap.full and len(snap.points_slam) > 200
     assert len(t_kf) == len(T_kf) >= 3 and np.all(np.diff(t_kf) > 0)
-    # the anchor lookup (companion.pipeline): the keyframe nearest the camera among those of the
-    # local map the last pose came from, as that map had it; no such keyframe, no pose
-    d_kf = np.linalg.norm(T_kf[:, :3, 3] - c_last, axis=1)
-    assert np.linalg.norm(T_near[:3, 3] - c_last) <= d_kf.min() + 0.02 * np.ptp(T_kf[:, :3, 3], axis=0).max()
-    assert np.allclose(T_near[:3, :3] @ T_near[:3, :3].T, np.eye(3), atol=1e-9) and s.keyframe_pose(-1) is None
+    # the local map the last pose was solved against (what alignments follow, companion.pipeline):
+    # it holds every inlier of that pose, at the position the pose used, ids sorted
+    pos = dict(zip(lm.point_ids.tolist(), map(tuple, lm.p_slam)))
+    assert np.all(np.diff(lm.point_ids) > 0) and {tuple(p) for p in tracked} <= set(pos.values())
     # the last frame's pose inliers (what the barometer check reads): in front of the camera, in the image
     assert len(tracked) == poses[-1].n_inliers >= 20
     uv, z = project(nominal.camera.K, inv_T(poses[-1].T_slam_cam), tracked)
