@@ -17,9 +17,10 @@ coordinates. On `nominal` seed 2 one periodic 25-keyframe BA moved the newest ke
 along the track (a flat direction of its cost: 1085 against 1089 for the map before it, which was
 0.1 m from the truth); the tracked pose followed the moved points and every fix jumped 1.3 m, 0.6 s
 after GNSS was lost, and stayed off until the next registrations (2.1–2.5 m mean after the loss in
-the 3 of 5 runs with that BA, 1.2 m in the 2 without). So each alignment keeps its points, and when
-local mapping moves them, the alignment moves with them by their least-squares similarity
-(_follow_map): what a registration of the moved points would find, to first order.
+the 3 of 5 runs with that BA, 1.2 m in the 2 without). So each registration keeps the points it
+was computed on, and when local mapping moves them, its alignment moves with them by their
+least-squares similarity (_follow_map): what a registration of the moved points would find, to
+first order. A local BA that moves only the newest of them hardly moves it.
 """
 from __future__ import annotations
 
@@ -38,7 +39,6 @@ from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
-from gis.config import AlignmentConfig
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.globalizer import Globalizer
 from gis.sim3 import Sim3, umeyama
@@ -454,7 +454,6 @@ BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
-FOLLOW_MIN_POINTS = 20  # an alignment with fewer points in its crop is not followed
 FOLLOW_EVENT_M = 0.3  # ... and goes into the alignment timeline from this much on
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
@@ -499,7 +498,7 @@ class Localizer:
         self._last_pose: SlamPose | None = None
         self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
         self._submitted: _Cloud | None = None  # the last registration's points, as submitted
-        self.crop_size_m = tuner.config.crop_size_m if tuner is not None else AlignmentConfig().crop_size_m
+        self._crop_half_m = tuner.config.crop_size_m / 2 if tuner is not None else 0.0  # (registrations only)
         self._scale_check_t_s = -math.inf
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
@@ -508,35 +507,33 @@ class Localizer:
             self._accept(initial_alignment, "initial")
 
     def _follow_map(self, pose: SlamPose, alignment: Alignment) -> Alignment:
-        """Carry the alignment along when local mapping moves its points (module doc, "Alignments
-        follow their points"). Each alignment keeps the SLAM points it describes (_Cloud): a
-        registration's crop of the submitted map points, else the tracked local map's points in
-        the same crop about its centre. When the local map the pose was solved against holds some
-        of them elsewhere, the similarity S from their old to their new positions (Umeyama 1991;
-        points it does not hold count as unmoved) makes the alignment T_ecef_slam ∘ S⁻¹ and its
-        centre S·center_slam; followed once that shifts this frame's fix by FOLLOW_MIN_M."""
-        if alignment.center_slam is None or not pose.state.has_pose:
+        """Carry a registration along when local mapping moves its points (module doc, "Alignments
+        follow their points"). A registration keeps the SLAM points it was computed on (_Cloud:
+        the submitted map points in its crop). When the local map the pose was solved against
+        holds some of them elsewhere, the similarity S from their old to their new positions
+        (Umeyama 1991; points it does not hold count as unmoved) makes the alignment
+        T_ecef_slam ∘ S⁻¹ and its centre S·center_slam; followed once that shifts this frame's fix
+        by FOLLOW_MIN_M. GNSS fits (refitted every few seconds), offline and restored alignments
+        have no points of ours and are not followed."""
+        if not pose.state.has_pose:
             return alignment
-        lm = self.slam.tracked_local_map()
         cloud = self._cloud
         if cloud is None or cloud.alignment is not alignment:
             sub = self._submitted
-            if sub is not None and alignment.source is AlignmentSource.FINE and alignment.t_s == sub.t_s:
-                ids, p = sub.point_ids, sub.p_slam
-            elif lm is not None:
-                keep = self._in_crop(alignment, lm.p_slam)
-                ids, p = lm.point_ids[keep], lm.p_slam[keep]
-            else:
-                ids, p = np.zeros(0, np.int64), np.zeros((0, 3))
-            cloud = self._cloud = _Cloud(alignment, ids, p)
-        if lm is None or lm.version == cloud.version or len(cloud.point_ids) < FOLLOW_MIN_POINTS or len(lm.point_ids) == 0:
+            if sub is None or alignment.source is not AlignmentSource.FINE or alignment.t_s != sub.t_s:
+                self._cloud = None  # not a registration of ours: its points are not known
+                return alignment
+            cloud = self._cloud = _Cloud(alignment, sub.point_ids, sub.p_slam)
+        lm = self.slam.tracked_local_map()
+        if lm is None or lm.version == cloud.version or len(lm.point_ids) == 0:
             return alignment
         cloud.version = lm.version
         k = np.minimum(np.searchsorted(lm.point_ids, cloud.point_ids), len(lm.point_ids) - 1)
         held = lm.point_ids[k] == cloud.point_ids
         p_now = cloud.p_slam.copy()
         p_now[held] = lm.p_slam[k[held]]
-        if not np.any(p_now != cloud.p_slam):
+        # a similarity of points none of which moved FOLLOW_MIN_M cannot move a fix among them by more
+        if alignment.T_ecef_slam.scale * float(np.abs(p_now - cloud.p_slam).max(initial=0.0)) < FOLLOW_MIN_M / 2:
             return alignment
         try:
             S_inv = umeyama(cloud.p_slam, p_now).inverse()  # new SLAM coordinates → old
@@ -559,14 +556,13 @@ class Localizer:
                                           f"by local mapping, the fix by {moved_m:.2f} m"))
         return followed
 
-    def _in_crop(self, alignment: Alignment, p_slam: np.ndarray) -> np.ndarray:
-        """(N,) bool: points inside the registration crop (crop_size_m square, local level axes)
-        about the alignment's centre, as gis.align.fine crops them."""
-        T = alignment.T_ecef_slam
-        c = T.apply(np.asarray(alignment.center_slam, float))
+    def _in_crop(self, T_ecef_slam: Sim3, center_slam: np.ndarray, p_slam: np.ndarray) -> np.ndarray:
+        """(N,) bool: points inside a registration's crop (crop_size_m square in the local level
+        axes about center_slam, as gis.align.fine crops them)."""
+        c = T_ecef_slam.apply(center_slam)
         lat, lon, _ = ecef_to_geodetic(c)
-        d_enu = (T.apply(p_slam) - c) @ R_ecef_enu(float(lat), float(lon))
-        return np.all(np.abs(d_enu[:, :2]) <= self.crop_size_m / 2, axis=1)
+        d_enu = (T_ecef_slam.apply(p_slam) - c) @ R_ecef_enu(float(lat), float(lon))
+        return np.all(np.abs(d_enu[:, :2]) <= self._crop_half_m, axis=1)
 
     def _accept(self, alignment: Alignment, why: str) -> None:
         with self._lock:
@@ -699,7 +695,7 @@ class Localizer:
                 if len(points) >= self.min_points and self.worker.submit(
                         points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, self._camera_h_ell_m(item.prior)):
                     self._frames_since_tune = 0
-                    crop = self._in_crop(replace(alignment, center_slam=pose.T_slam_cam[:3, 3].copy()), points)
+                    crop = self._in_crop(alignment.T_ecef_slam, pose.T_slam_cam[:3, 3], points)
                     order = np.argsort(ids[crop], kind="stable")
                     self._submitted = _Cloud(alignment, ids[crop][order], points[crop][order], t_s=pose.t_s)
                 else:  # too few well-triangulated points: retry soon, not every frame (a
