@@ -21,6 +21,9 @@ the 3 of 5 runs with that BA, 1.2 m in the 2 without). So each registration keep
 was computed on, and when local mapping moves them, its alignment moves with them by their
 least-squares similarity (_follow_map): what a registration of the moved points would find, to
 first order. A local BA that moves only the newest of them hardly moves it.
+
+The pipeline knows no camera device, MAVLink or simulator: callers pass an iterator of
+``PipelineInput`` and a sink; ``companion.app`` wires cameras, the bridge and the simulator.
 """
 from __future__ import annotations
 
@@ -460,9 +463,10 @@ MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of fligh
 
 @dataclass
 class _Cloud:
-    """The SLAM points an alignment describes (Localizer._follow_map): point_ids sorted, p_slam
-    (N, 3) where they were when last followed; version: the local map last compared with; t_s: the
-    registration's time (for a submitted cloud)."""
+    """The SLAM points a registration was computed on (Localizer._follow_map): point_ids sorted,
+    p_slam (N, 3) where they were when last followed; alignment: the alignment they carry (for the
+    submitted cloud, the prior it was registered from); version: the local map last compared with;
+    t_s: the registration's time (submitted cloud)."""
 
     alignment: Alignment
     point_ids: np.ndarray
