@@ -591,9 +591,10 @@ def _flown(city, D: Sim3, local_map: bool = True):
             t = round(k / 10, 1)
             fix = loc.process(PipelineInput(Frame(img, t, k), None, False, None)).fix
             err[t] = float(np.linalg.norm(fix.p_ecef_m - enu_sim3(ORIGIN).apply(_MapMovedSlam.cam_enu(t)[None])[0]))
-            if k == 5:  # the one registration: wait for it, then no more
+            if k == 5:  # the one registration: wait until it is adopted (or refused), then no more
                 deadline = time.monotonic() + 30.0
-                while loc.worker.busy.is_set() and time.monotonic() < deadline:
+                while (time.monotonic() < deadline
+                       and not any(e.startswith(("alignment fine accepted (ok", "fine-tuning rejected")) for _, e in loc.events)):
                     time.sleep(0.005)
                 loc.every = loc.every_denied = 10**6
     finally:
