@@ -24,6 +24,7 @@ class PoseEstimate:
     inlier_feat: np.ndarray  # feature indices
     inlier_pid: np.ndarray  # their map point ids
     inlier_p_slam: np.ndarray  # (N, 3) their positions in the SLAM frame, as the pose was solved with them
+    local_map: LocalMap  # the map the pose was solved against
 
 
 def solve_pnp(K: np.ndarray, p_slam: np.ndarray, uv_px: np.ndarray, T_guess: np.ndarray | None,
@@ -179,6 +180,7 @@ class Tracker:
         self.lost_frames = 0
         self.frames_since_kf += 1
         self.tracked_p_slam = est.inlier_p_slam
+        self.pose_map = est.local_map
         kf = None
         n = len(est.inlier_pid)
         # The inlier-ratio rule's reference is the most points tracked since the last keyframe
@@ -233,7 +235,6 @@ class Tracker:
         for radius in (self.config.search_radius_px, 3 * self.config.search_radius_px):
             est = self._match_and_solve(feats, lm, T_pred, radius, tree)
             if est is not None:
-                self.pose_map = lm
                 return est
         return None
 
@@ -264,7 +265,7 @@ class Tracker:
             if sol2 is not None and sol2[1].sum() >= inl.sum():
                 T, inl = sol2
                 pts, pairs = pts2, pairs2
-        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]])
+        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm)
 
     def _apply_correction(self) -> None:
         gen, S = self.shared.correction
@@ -310,7 +311,6 @@ class Tracker:
                     est = self._track_local_map(feats, sol[0])
                     if est is None or len(est.inlier_pid) < c.reloc_min_inliers:
                         est = self._match_and_solve(feats, lm, sol[0], c.search_radius_px, cKDTree(feats.uv_px))
-                        self.pose_map = lm
                     if est is not None and len(est.inlier_pid) >= c.reloc_min_inliers:
                         self._reloc_map = None
                         self._reloc_timeout_s = self._reloc_deadline_t_s = None
