@@ -502,7 +502,7 @@ class Localizer:
         self._last_pose: SlamPose | None = None
         self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
         self._submitted: _Cloud | None = None  # the last registration's points, as submitted
-        self._crop_half_m = tuner.config.crop_size_m / 2 if tuner is not None else 0.0  # (registrations only)
+        self._tuner = tuner
         self._scale_check_t_s = -math.inf
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
@@ -559,14 +559,6 @@ class Localizer:
             self.events.append((pose.t_s, f"alignment follows its points: {int(held.sum())} of {len(held)} moved "
                                           f"by local mapping, the fix by {moved_m:.2f} m"))
         return followed
-
-    def _in_crop(self, T_ecef_slam: Sim3, center_slam: np.ndarray, p_slam: np.ndarray) -> np.ndarray:
-        """(N,) bool: points inside a registration's crop (crop_size_m square in the local level
-        axes about center_slam, as gis.align.fine crops them)."""
-        c = T_ecef_slam.apply(center_slam)
-        lat, lon, _ = ecef_to_geodetic(c)
-        d_enu = (T_ecef_slam.apply(p_slam) - c) @ R_ecef_enu(float(lat), float(lon))
-        return np.all(np.abs(d_enu[:, :2]) <= self._crop_half_m, axis=1)
 
     def _accept(self, alignment: Alignment, why: str) -> None:
         with self._lock:
@@ -699,7 +691,7 @@ class Localizer:
                 if len(points) >= self.min_points and self.worker.submit(
                         points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, self._camera_h_ell_m(item.prior)):
                     self._frames_since_tune = 0
-                    crop = self._in_crop(alignment.T_ecef_slam, pose.T_slam_cam[:3, 3], points)
+                    crop = self._tuner.in_crop(points, alignment.T_ecef_slam, pose.T_slam_cam[:3, 3])
                     order = np.argsort(ids[crop], kind="stable")
                     self._submitted = _Cloud(alignment, ids[crop][order], points[crop][order], t_s=pose.t_s)
                 else:  # too few well-triangulated points: retry soon, not every frame (a

@@ -361,7 +361,7 @@ class FineTuner:
         c_slam = np.median(pts, axis=0) if center_slam is None else np.asarray(center_slam, float).reshape(3)
         c = T_enu_slam.apply(c_slam)
         half = cfg.crop_size_m / 2
-        src = src[np.all(np.abs(src[:, :2] - c[:2]) <= half, axis=1)] - c
+        src = src[_in_square(src, c, half)] - c
         src = _subsample(_voxel(src, cfg.source_voxel_m), MAX_SOURCE_POINTS)
         if len(src) < cfg.min_points:
             return Registration(None, f"only {len(src)} SLAM points in the {cfg.crop_size_m:.0f} m crop", n_source=len(src))
@@ -443,6 +443,12 @@ class FineTuner:
             center_slam=c_new_slam, scale_sigma=float(np.sqrt(P_post[6, 6])),
         )
         return Registration(alignment, "ok", wall_ms=1e3 * (time.perf_counter() - t0), **common)
+
+    def in_crop(self, points_slam: np.ndarray, T_ecef_slam: Sim3, center_slam: np.ndarray) -> np.ndarray:
+        """(N,) bool: the SLAM points a registration about ``center_slam`` under ``T_ecef_slam``
+        takes (the crop_size_m square about it in the model's ENU axes, as ``register`` crops)."""
+        T_enu_slam = compose(self._T_enu_ecef, T_ecef_slam)
+        return _in_square(T_enu_slam.apply(points_slam), T_enu_slam.apply(center_slam), self.config.crop_size_m / 2)
 
     def check_scale(self, points_slam: np.ndarray, alignment: Alignment, center_slam: np.ndarray,
                     camera_h_ell_m: float) -> ScaleCheck:
@@ -695,6 +701,11 @@ def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
         return np.eye(3) + _skew(w)
     K = _skew(w / theta)
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
+
+
+def _in_square(p_enu: np.ndarray, c_enu: np.ndarray, half_m: float) -> np.ndarray:
+    """(N,) bool: points within ``half_m`` of ``c_enu`` in east and in north (a crop square)."""
+    return np.all(np.abs(p_enu[:, :2] - c_enu[:2]) <= half_m, axis=1)
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
