@@ -9,6 +9,7 @@ import numpy as np
 from slam.config import SlamConfig
 from slam.geometry import _motion_candidates, initialize_two_view, make_T, project, triangulate
 from slam.features import Features
+from slam.map import LocalMap
 from slam.tracking import PoseEstimate, Tracker
 from slam.types import Frame, TrackingState
 
@@ -121,7 +122,8 @@ def test_keyframe_when_inliers_fall_below_the_ratio_of_the_most_tracked_since_th
     feats = Features(np.zeros((300, 2)), np.zeros((300, 32), np.uint8), np.zeros(300, int))
 
     def new_keyframe(x_m: float, n_inliers: int) -> bool:
-        est = PoseEstimate(aerial_T_cam_world(x_m), np.arange(n_inliers), np.arange(n_inliers), np.zeros((n_inliers, 3)))
+        lm = LocalMap(np.arange(n_inliers), np.zeros((n_inliers, 3)), np.zeros((n_inliers, 32), np.uint8), 0)
+        est = PoseEstimate(aerial_T_cam_world(x_m), np.arange(n_inliers), np.arange(n_inliers), np.zeros((n_inliers, 3)), lm)
         frame = Frame(np.zeros((H_PX, W_PX), np.uint8), x_m / 7.0, int(x_m * 10))
         return t._accept(frame, feats, est, TrackingState.OK).new_keyframe is not None
 
