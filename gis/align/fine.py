@@ -51,6 +51,12 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   of 0.61 / 0.99.
   Also an apparent tilt of σ_MAD / (crop half-width) rad about the cloud's centroid, which
   moves the crop centre through the lever arm.
+- Basin in rotation and scale: the restarts' largest disagreement about each ENU axis and in
+  log-scale (``_Basin``) is added to the rotation and scale variances. On the stale model they
+  ended 1.2–2.3° apart in yaw and 3 % in scale while the Hessian claimed 0.2–0.3°; the update
+  took the registration's yaw, and the fixes ran off 2° across the track (0.25 m/s at 7 m/s)
+  with a 1-σ a third of their error. Measured in docs/BENCHMARKS.md, "Restarts that disagree in
+  rotation".
 - Update: prior (propagated to the crop centre with its lever arm, SLAM drift, scale σ and the
   scale's own drift, ``slam_scale_drift_per_100m`` × distance; GNSS priors also with model_sigma_m)
   and measurement z = x + v: Kalman update x = K z, P⁺ = (I − K) P, for every prior.
@@ -112,7 +118,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -174,7 +180,9 @@ class Registration:
     used_fpfh: bool = False
     wall_ms: float = 0.0
     nis: float = 0.0          # innovation χ² against the prior (0 without a usable prior)
-    spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check)
+    spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check): crop centre, m
+    spread_rot_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # ... rotation about east, north, up
+    spread_scale: float = 0.0  # ... |log-scale| (≈ relative scale)
     sigma_mad_m: float = 0.0  # robust residual scale of all matched points
     scale_ratio: float = float("nan")  # barometric / SLAM height over the ground under the camera (nan: not tested)
 
@@ -200,6 +208,22 @@ class ScaleCheck:
     def describe(self) -> str:
         return (f"ratio {self.ratio:.3f} over {self.n_points} points, quartiles beyond {self.low:.3f} … "
                 f"{self.high:.3f} (3σ; tolerance 1 ± {self.tolerance:g})")
+
+
+@dataclass(frozen=True)
+class _Basin:
+    """How far the basin check's restarts ended from the ICP optimum, per degree of freedom (largest
+    over the restarts): translation of the crop centre, rotation about each ENU axis, log-scale."""
+
+    translation_m: float = 0.0
+    rotation_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    log_scale: float = 0.0
+
+    def widened(self, optimum: Sim3, other: Sim3) -> "_Basin":
+        d_rot = np.abs(Rotation.from_matrix(other.R @ optimum.R.T).as_rotvec())
+        return _Basin(max(self.translation_m, float(np.linalg.norm(other.t - optimum.t))),
+                      np.maximum(self.rotation_rad, d_rot),
+                      max(self.log_scale, abs(math.log(other.scale / optimum.scale))))
 
 
 @dataclass(frozen=True)
@@ -397,16 +421,16 @@ class FineTuner:
                 reason2 = self._gate(icp2, cfg)
                 if not reason2 or icp2.fitness > icp.fitness:
                     icp, reason, used_fpfh = icp2, reason2, True
-        spread = 0.0
+        basin = _Basin()
         if not reason:  # basin check: restarts from shifted guesses must find the same optimum
             for dist_m, ang_deg in MULTISTARTS:
                 ang = np.radians(ang_deg)
                 g = compose(Sim3(1.0, np.eye(3), dist_m * np.array([np.cos(ang), np.sin(ang), 0.0])), icp.T)
-                other = _icp(src, crop, c, g, cfg, min_corr)
-                spread = max(spread, float(np.linalg.norm(other.t - icp.T.t)))
+                basin = basin.widened(icp.T, _icp(src, crop, c, g, cfg, min_corr))
+        spread = basin.translation_m
 
         z = _vec(icp.T)
-        R = _measurement_cov(icp, cfg, spread)
+        R = _measurement_cov(icp, cfg, basin)
         nis = 0.0
         if prior is None:  # the registration stands alone
             x_post, P_post = z, R
@@ -416,6 +440,7 @@ class FineTuner:
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
                       n_target=n_tgt, used_fpfh=used_fpfh, nis=nis, spread_m=spread,
+                      spread_rot_deg=tuple(float(v) for v in np.degrees(basin.rotation_rad)), spread_scale=basin.log_scale,
                       sigma_mad_m=icp.sigma_mad_m, scale_ratio=k)
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
@@ -597,7 +622,7 @@ def _sigmas(icp: _Icp, cfg: AlignmentConfig) -> tuple[float, float, float]:
     return sig_p, sig_r, float(np.sqrt(cov[6, 6]))
 
 
-def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, spread_m: float) -> np.ndarray:
+def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, basin: _Basin) -> np.ndarray:
     """Covariance of the ICP solution [rot, trans, log-scale] (module doc: random + systematic + basin)."""
     cov = _data_cov(icp, cfg)
     if cov is None:
@@ -608,8 +633,9 @@ def _measurement_cov(icp: _Icp, cfg: AlignmentConfig, spread_m: float) -> np.nda
     # the solved rotation carries the cloud's apparent tilt, and it moves the centre by ω × (c − p̄)
     A = np.vstack([np.eye(3), _skew(icp.centroid), np.zeros((1, 3))])
     cov += sig_tilt**2 * A @ A.T
-    cov[3:6, 3:6] += max(SYS_OFFSET_FRACTION * s_mad, spread_m) ** 2 * np.eye(3)
-    cov[6, 6] += SYS_SCALE_SIGMA**2
+    cov[3:6, 3:6] += max(SYS_OFFSET_FRACTION * s_mad, basin.translation_m) ** 2 * np.eye(3)
+    cov[:3, :3] += np.diag(basin.rotation_rad**2)
+    cov[6, 6] += SYS_SCALE_SIGMA**2 + basin.log_scale**2
     return cov
 
 
