@@ -439,8 +439,10 @@ class FineTuneWorker:
         if math.isfinite(ms):
             self.wall_ms.append(ms)
             self.cpu_ms.append(cpu_ms)
-        self.busy.clear()
-        self._on_result(alignment, reason, ms)
+        try:  # busy until the result is adopted: whoever sees the worker free sees its alignment
+            self._on_result(alignment, reason, ms)
+        finally:
+            self.busy.clear()
 
     def close(self) -> None:
         self._proc.close()

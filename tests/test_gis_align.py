@@ -632,6 +632,34 @@ def _flown(city, D: Sim3, local_map: bool = True):
     return err, list(loc.events)
 
 
+def test_the_worker_is_busy_until_its_result_is_adopted(city):
+    """FineTuneWorker.busy clears only after on_result has run: a caller that waits for the worker
+    to be free (the bench before reading its figures, the Localizer before the next submit) sees
+    the registration's alignment, not the one before it. The worker cleared busy first before."""
+    import time
+
+    from companion.pipeline import FineTuneWorker
+
+    adopted = []
+
+    def on_result(alignment, reason, wall_ms):
+        time.sleep(0.3)  # adopting takes a while (the Localizer takes its lock, the Globalizer updates)
+        adopted.append((alignment, reason))
+
+    p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
+    worker = FineTuneWorker(FineTuner(city), on_result)
+    try:
+        assert worker.submit(_slam(p), _prior_about(cam, (1.0, -0.5, 0.2)), _slam(cam), 1.0)
+        assert not worker.submit(_slam(p), _prior_about(cam, (1.0, -0.5, 0.2)), _slam(cam), 1.0)  # one in flight
+        deadline = time.monotonic() + 60.0
+        while worker.busy.is_set() and time.monotonic() < deadline:
+            time.sleep(0.002)
+        assert not worker.busy.is_set()
+        assert len(adopted) == 1 and adopted[0][1] == "ok" and adopted[0][0] is not None, adopted
+    finally:
+        worker.close()
+
+
 def test_a_registration_follows_its_points_when_local_mapping_moves_them(city):
     """Local mapping moves the map under the camera by 1.1 m, 0.5° and 1 % scale at 1.5 s, after a
     registration at 0.5 s (as the periodic large BA did in `nominal` seed 2, companion/pipeline.py):
