@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (SCALE_MISMATCH_REASON, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Icp, _measurement_cov,
-                             _update, enu_sim3)
+from gis.align.fine import (SCALE_MISMATCH_REASON, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Icp, _jacobian,
+                             _measurement_cov, _update, enu_sim3)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -332,7 +332,7 @@ def test_restarts_that_disagree_in_rotation_or_scale_widen_the_measurement():
     x = rng.uniform(-60, 60, (900, 3))
     n = np.zeros_like(x)
     n[:300, 2], n[300:600, 0], n[600:, 1] = 1.0, 1.0, 1.0
-    J = np.c_[np.cross(x, n), n, np.einsum("ij,ij->i", n, x)]
+    J = _jacobian(x, n)
     icp = _Icp(optimum, 0.9, 0.3, J.T @ J, len(x), np.zeros(3), 0.3)
     cfg = AlignmentConfig()
     alone, widened = _measurement_cov(icp, cfg, _Basin()), _measurement_cov(icp, cfg, basin)
