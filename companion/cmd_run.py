@@ -119,6 +119,7 @@ def replay(
     dataset: Path = typer.Argument(..., help="dataset folder (docs/DATASET.md)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder"),
     frames: Optional[int] = typer.Option(None, "--frames", min=1, help="replay only the first N frames"),
+    repeatable: bool = typer.Option(False, "--repeatable", help="local mapping and fine-tuning keep step with the recorded clock: the same replay gives the same fixes to the bit (as `bench --repeatable`)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth exists)."""
@@ -133,7 +134,7 @@ def replay(
             def progress(k, n, state):
                 bar.update(task, completed=k, total=n)
 
-            summary = run_replay(cfg, dataset, out, frames, progress=progress)
+            summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable)
     except (DatasetError, ValueError, FileNotFoundError) as e:
         fail(str(e))
     _print_summary(summary, out)

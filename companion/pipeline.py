@@ -378,12 +378,20 @@ class FineTuneWorker:
     ``wall_ms`` is each registration's wall time inside the worker, ``cpu_ms`` the CPU time it used
     (on a loaded 2-core board the two differ by the time the worker waited for a core). If the worker dies, the job in
     flight reports why, and the next submit starts a new worker (never an exception on the hot path).
+
+    ``lag_s`` (offline runs on a simulated or recorded clock): a job's result is not handed over
+    when it finishes but by ``release(t_s)`` once the flight clock has passed the job's time + lag_s,
+    on the caller's thread, waiting for the job if it has not finished. Which frame adopts a result
+    then depends on flight time alone, not on how fast this machine ran the loop, so a run repeats
+    (live, lag_s is None: results are adopted as soon as they exist).
     """
 
     def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None],
-                 on_scale_check: Callable[[Alignment, ScaleCheck], None] | None = None):
+                 on_scale_check: Callable[[Alignment, ScaleCheck], None] | None = None, lag_s: float | None = None):
         self._on_result = on_result
         self._on_scale_check = on_scale_check
+        self.lag_s = lag_s
+        self._held: collections.deque[tuple[float, Callable[[], None]]] = collections.deque()  # (due t_s, hand over)
         self.busy = threading.Event()
         self.checking = threading.Event()  # a scale check in flight
         self.wall_ms: list[float] = []
@@ -398,21 +406,34 @@ class FineTuneWorker:
                 return False
             fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m)
             self.busy.set()
-        fut.add_done_callback(self._done)
+        self._hand_over(t_s, fut, self._done)
         return True
 
     def check_scale(self, points_slam: np.ndarray, alignment: Alignment, center_slam: np.ndarray,
-                    camera_h_ell_m: float) -> bool:
+                    camera_h_ell_m: float, t_s: float) -> bool:
         """Run FineTuner.check_scale in the worker (queued behind a registration in flight); the
         result goes to on_scale_check with the alignment it tested. At most one in flight: False
-        (nothing submitted) while one is."""
+        (nothing submitted) while one is. ``t_s``: the frame's time (for ``lag_s``)."""
         with self._lock:
             if self.checking.is_set() or self._on_scale_check is None:
                 return False
             fut = self._proc.submit(_check_scale_in_worker, points_slam, alignment, center_slam, camera_h_ell_m)
             self.checking.set()
-        fut.add_done_callback(lambda f: self._checked(f, alignment))
+        self._hand_over(t_s, fut, lambda f: self._checked(f, alignment))
         return True
+
+    def _hand_over(self, t_s: float, fut: Future, deliver: Callable[[Future], None]) -> None:
+        if self.lag_s is None:
+            fut.add_done_callback(deliver)
+        else:
+            self._held.append((t_s + self.lag_s, lambda: deliver(fut)))
+
+    def release(self, t_s: float) -> None:
+        """Hand over, in submission order, every held result due by flight time ``t_s`` (waiting
+        for its job if it has not finished); ``math.inf`` hands over all. Nothing to do when
+        lag_s is None."""
+        while self._held and self._held[0][0] <= t_s:
+            self._held.popleft()[1]()
 
     def _checked(self, fut: Future, alignment: Alignment) -> None:
         try:
@@ -483,9 +504,12 @@ class Localizer:
     def __init__(self, slam, tuner: FineTuner | None, globalizer: Globalizer, finetune_every_frames: int = 200,
                  finetune_every_frames_denied: int = 50,
                  initial_alignment: Alignment | None = None, bootstrap: BootstrapCollector | None = None,
-                 min_points_for_finetune: int = 200, finetune_min_parallax_deg: float = 0.0):
+                 min_points_for_finetune: int = 200, finetune_min_parallax_deg: float = 0.0,
+                 repeatable_lag_s: float | None = None):
+        """``repeatable_lag_s``: offline, repeatable runs only (``settle``); None live."""
         self.slam = slam
         self.globalizer = globalizer
+        self.repeatable = repeatable_lag_s is not None
         self.every = finetune_every_frames
         self.every_denied = finetune_every_frames_denied
         self.min_points = min_points_for_finetune
@@ -508,7 +532,8 @@ class Localizer:
         self._scale_check_t_s = -math.inf
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
-        self.worker = FineTuneWorker(tuner, self._on_finetune, self._on_scale_check) if tuner is not None else None
+        self.worker = (FineTuneWorker(tuner, self._on_finetune, self._on_scale_check, lag_s=repeatable_lag_s)
+                       if tuner is not None else None)
         if initial_alignment is not None:
             self._accept(initial_alignment, "initial")
 
@@ -631,8 +656,23 @@ class Localizer:
         h = self._camera_h_ell_m(prior)
         pts = self.slam.tracked_points_slam()
         if h is not None and len(pts) >= NADIR_MIN_POINTS and self.worker.check_scale(
-                pts, alignment, pose.T_slam_cam[:3, 3].copy(), h):
+                pts, alignment, pose.T_slam_cam[:3, 3].copy(), h, pose.t_s):
             self._scale_check_t_s = pose.t_s
+
+    def settle(self, t_s: float) -> None:
+        """Repeatable offline runs (``repeatable_lag_s``): before the frame at flight time ``t_s``,
+        wait until local mapping has mapped every keyframe and applied its bundle adjustment, and
+        adopt the fine-tuning results due by ``t_s`` (submitted repeatable_lag_s or more before;
+        waiting for them). What each frame sees then depends on flight time alone, not on this
+        machine's speed, so the run repeats to the bit. It is optimistic about local mapping
+        (live, a keyframe's map arrives some frames later). Offline loops call it before each
+        frame, outside the frame's timing, and with ``math.inf`` at the end. Nothing to do live."""
+        if not self.repeatable:
+            return
+        if not self.slam.wait_mapping():
+            log.warning("repeatable run: local mapping still busy after 60 s; going on")
+        if self.worker is not None:
+            self.worker.release(t_s)
 
     def process(self, item: PipelineInput) -> FrameRecord:
         pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
@@ -752,6 +792,7 @@ def run(inputs: Iterable[PipelineInput], localizer: Localizer, sink: Callable[[G
         on_record: Callable[[FrameRecord], None] | None = None) -> Iterator[FrameRecord]:
     """Drive the localizer over ``inputs``; every fix (or None) goes to ``sink`` at once."""
     for item in inputs:
+        localizer.settle(item.frame.t_s)
         rec = localizer.process(item)
         if sink is not None:
             sink(rec.fix)

@@ -200,9 +200,11 @@ class LocalMapper:
 
     # --- called from the tracking thread (non-blocking) -----------------------------------------
     def insert_keyframe(self, kf: Keyframe) -> None:
+        self._n_put += 1
         self._inbox.put(kf)
 
     def reset(self, new_map: SlamMap) -> None:
+        self._n_put += 1
         self._inbox.put(_Reset(new_map))
 
     def close(self) -> None:
@@ -214,16 +216,18 @@ class LocalMapper:
         return self._inbox.qsize()
 
     def wait_idle(self, timeout_s: float = 60.0) -> bool:
-        """For offline use/tests: wait until queued keyframes are processed."""
+        """For offline use/tests: wait until every keyframe put so far is processed and its local
+        BA applied and published (counted, so a keyframe just taken off the queue is not missed)."""
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            if self._inbox.empty() and not self._working and self._pending_ba is None:
+            if self._n_done == self._n_put and self._pending_ba is None:
                 return True
-            time.sleep(0.01)
+            time.sleep(0.001)
         return False
 
     # --- thread ---------------------------------------------------------------------------------
-    _working = False
+    _n_put = 0   # items put in the inbox (tracking thread)
+    _n_done = 0  # items processed (mapping thread)
 
     def _run(self) -> None:
         while True:
@@ -234,7 +238,6 @@ class LocalMapper:
                 continue
             if item is _STOP:
                 return
-            self._working = True
             try:
                 if isinstance(item, _Reset):
                     self._finish_ba(wait=True)
@@ -248,8 +251,8 @@ class LocalMapper:
             except Exception:  # keep mapping alive; tracking continues on the last local map
                 log.exception("local mapping failed on a keyframe")
             finally:
-                self._working = False
                 self.shared.mapping_busy = not self._inbox.empty()
+                self._n_done += 1
 
     def _process(self, kf: Keyframe) -> None:
         t0 = time.perf_counter()
@@ -332,22 +335,26 @@ class LocalMapper:
         fut, job, kf = self._pending_ba
         if not (wait or fut.done()):
             return
-        self._pending_ba = None
-        try:
+        try:  # pending until applied and published (wait_idle)
             res: BAResult = fut.result()
         except BrokenProcessPool:
             log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
+            self._pending_ba = None
             return
         except Exception:
             log.exception("bundle adjustment failed")
+            self._pending_ba = None
             return
-        self._apply_ba(res, job)
-        self.stats.local_ba_ms.append(res.solve_ms)
-        self.stats.local_ba_cpu_ms.append(res.solve_cpu_ms)
-        with self.map.lock:
-            ids = self.map.kf_ids()
-        if ids:
-            self._publish(ids, kf)
+        try:
+            self._apply_ba(res, job)
+            self.stats.local_ba_ms.append(res.solve_ms)
+            self.stats.local_ba_cpu_ms.append(res.solve_cpu_ms)
+            with self.map.lock:
+                ids = self.map.kf_ids()
+            if ids:
+                self._publish(ids, kf)
+        finally:
+            self._pending_ba = None
 
     def _run_ba(self, kf_ids: list[int], max_fixed: int) -> BAResult | None:
         """Synchronous BA (loop closing): build, solve in the worker process, write back."""

@@ -660,6 +660,36 @@ def test_the_worker_is_busy_until_its_result_is_adopted(city):
         worker.close()
 
 
+def test_a_held_result_is_adopted_at_its_flight_time_on_the_callers_thread(city):
+    """Offline runs (lag_s): a finished registration waits for the flight clock, not for this
+    machine's speed; release hands it over at submission + lag_s, on the calling thread, waiting
+    for the job if needed, so which frame adopts it does not change from run to run."""
+    import threading
+    import time
+
+    from companion.pipeline import FineTuneWorker
+
+    adopted = []
+    worker = FineTuneWorker(FineTuner(city), lambda a, r, ms: adopted.append((a, r, threading.current_thread())),
+                            lag_s=0.3)
+    p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
+    try:
+        assert worker.submit(_slam(p), _prior_about(cam, (1.0, -0.5, 0.2)), _slam(cam), 10.0)
+        worker.release(10.2)  # not due yet: returns at once, however long the job takes
+        time.sleep(3.0)  # the job has long finished in the worker process
+        worker.release(10.29)
+        assert adopted == [] and worker.busy.is_set()  # finished, but not handed over before its flight time
+        worker.release(10.3)
+        assert len(adopted) == 1 and adopted[0][1] == "ok" and adopted[0][0] is not None, adopted
+        assert adopted[0][2] is threading.current_thread()
+        assert not worker.busy.is_set()
+        assert worker.submit(_slam(p), _prior_about(cam, (1.0, -0.5, 0.2)), _slam(cam), 11.0)
+        worker.release(11.3)  # due at once: waits for the job rather than skipping it
+        assert len(adopted) == 2 and not worker.busy.is_set()
+    finally:
+        worker.close()
+
+
 def test_a_registration_follows_its_points_when_local_mapping_moves_them(city):
     """Local mapping moves the map under the camera by 1.1 m, 0.5° and 1 % scale at 1.5 s, after a
     registration at 0.5 s (as the periodic large BA did in `nominal` seed 2, companion/pipeline.py):
