@@ -193,6 +193,7 @@ class DemoOptions:
     gnss_timeline: str | None = None  # e.g. "spoof_drift@40" (companion.sim.gnss.parse_timeline) instead of the loss
     receiver: str = "dgps"  # simulated receiver grade before the loss: dgps (SBAS/DGPS, ~0.8 m), standalone (~4 m), urban
     scenario: str = "gnss_loss"
+    repeatable: bool = False  # fly_sim(repeatable=True)
 
 
 @dataclass
@@ -312,7 +313,7 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
     flight = fly_sim(cfg, scenario.steps(), scenario.n_frames, scenario.camera, scenario.T_body_cam, model,
-                     autopilot=opts.autopilot, progress=progress)
+                     autopilot=opts.autopilot, progress=progress, repeatable=opts.repeatable)
     run, received = flight.run, flight.received
     summary = summarize(run, name=f"demo ({opts.scenario}, {opts.receiver} receiver, {opts.autopilot})")
     summary["autopilot"] = {

@@ -85,6 +85,7 @@ def demo(
     gnss: Optional[str] = typer.Option(None, "--gnss", help="GNSS event timeline instead of the loss, MODE@START[-END],...: "
                                        "dropout, jamming, spoof_drift (0.5 m/s walk-off), spoof_jump (40 m), dgps, standalone; e.g. 'spoof_drift@40'"),
     receiver: str = typer.Option("dgps", "--receiver", help="simulated GNSS receiver grade before the loss: dgps (SBAS/DGPS, ~0.8 m 1-σ) | standalone (~4 m) | urban"),
+    repeatable: bool = typer.Option(False, "--repeatable", help="local mapping and fine-tuning keep step with the flight clock: the same flight gives the same fixes to the bit (as `bench --repeatable`)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Built-in simulated flight: GNSS lost mid-flight, our fixes take over; prints accuracy and the switch timeline."""
@@ -103,7 +104,7 @@ def demo(
         except ValueError as e:
             fail(str(e))
     opts = DemoOptions(seed=seed, n_frames=frames, gnss_loss_at_s=loss_at, autopilot=autopilot, gnss_timeline=gnss,
-                       receiver=receiver)
+                       receiver=receiver, repeatable=repeatable)
     with _progress_bar("demo") as bar:
         task = bar.add_task("simulated flight", total=frames, state="")
 

@@ -336,16 +336,14 @@ class LocalMapper:
         if not (wait or fut.done()):
             return
         try:  # pending until applied and published (wait_idle)
-            res: BAResult = fut.result()
-        except BrokenProcessPool:
-            log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
-            self._pending_ba = None
-            return
-        except Exception:
-            log.exception("bundle adjustment failed")
-            self._pending_ba = None
-            return
-        try:
+            try:
+                res: BAResult = fut.result()
+            except BrokenProcessPool:
+                log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
+                return
+            except Exception:
+                log.exception("bundle adjustment failed")
+                return
             self._apply_ba(res, job)
             self.stats.local_ba_ms.append(res.solve_ms)
             self.stats.local_ba_cpu_ms.append(res.solve_cpu_ms)
