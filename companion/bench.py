@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 import psutil
 
-from companion.app import RunLog, fly_sim, summarize
+from companion.app import REPEATABLE_LAG_S, RunLog, fly_sim, summarize
 from companion.config import AppConfig
 from companion.evaluate import fix_errors
 from gis.align.fine import enu_sim3
@@ -407,8 +407,6 @@ def figures(br: BenchRun, cfg: AppConfig) -> dict:
 def _repeatable(br: BenchRun) -> dict | None:
     """None for a free-running run; else the adoption lag and how many registrations took longer
     than it (wall time in the worker), i.e. would have been adopted later live on this machine."""
-    from companion.app import REPEATABLE_LAG_S
-
     if not br.repeatable:
         return None
     late = sum(ms > REPEATABLE_LAG_S * 1e3 for ms in br.run.finetune_ms)
