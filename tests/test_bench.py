@@ -170,7 +170,7 @@ def test_seeds_table_counts_runs_without_fixes_and_summarises_the_rest():
 def test_a_repeatable_run_repeats_to_the_bit(tmp_path):
     """`bench --repeatable`: local mapping and fine-tuning keep step with the flight clock, so two
     runs of the same flight give the same SLAM poses and the same fixes, registrations included
-    (free-running, the two runs of `nominal` seed 0 parted 0.2 s into the flight and ended 0.3 m
+    (free-running, the two runs of `nominal` seed 0 parted 9 s into the window and ended 0.3 m
     apart in mean error)."""
     pytest.importorskip("slam.system", reason="slam.system.SlamSystem has not landed")
     from companion.bench import bench_scenario
