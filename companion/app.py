@@ -58,10 +58,10 @@ REPEATABLE_LAG_S = 0.3
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
                     initial_alignment: Alignment | None = None, initial_map=None,
-                    repeatable_lag_s: float | None = None) -> Localizer:
+                    repeatable: bool = False) -> Localizer:
     """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy).
     ``initial_map``: a slam.persist.LoadedMap to resume in (the service after a restart).
-    ``repeatable_lag_s``: offline runs only (REPEATABLE_LAG_S); None live."""
+    ``repeatable``: offline runs only (Localizer.settle, REPEATABLE_LAG_S); never live."""
     from slam.system import SlamSystem
 
     slam = SlamSystem(camera, cfg.slam, initial_map=initial_map, reloc_timeout_s=cfg.persistence.reloc_timeout_s)
@@ -69,7 +69,8 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,
                      finetune_min_parallax_deg=cfg.alignment.finetune_min_parallax_deg,
-                     initial_alignment=initial_alignment, repeatable_lag_s=repeatable_lag_s,
+                     initial_alignment=initial_alignment,
+                     repeatable_lag_s=REPEATABLE_LAG_S if repeatable else None,
                      bootstrap=BootstrapCollector(T_body_cam=T_body_cam) if cfg.alignment.bootstrap_from_gnss
                      else BootstrapCollector(min_pairs=10**9))
 
@@ -231,7 +232,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
     ap = SimAutopilot(autopilot, params=params, clock=clock).start()
     mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
-    localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable_lag_s=REPEATABLE_LAG_S if repeatable else None)
+    localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable)
     out_msg = output.upper()  # the fix message; heartbeats etc. are not fixes
     run, alignments, last_key = RunLog(), [], None
     try:
@@ -367,7 +368,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir} lists no GIS model file (site.yaml gis)")
     model = _load_first_model(ds.gis_files, cfg)
-    localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model, repeatable_lag_s=REPEATABLE_LAG_S if repeatable else None)
+    localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model, repeatable=repeatable)
     monitor = GnssMonitor(cfg.switching)
     run = RunLog()
     n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)
