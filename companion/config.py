@@ -1,8 +1,8 @@
 """The validated application config: one model per section, YAML file + TERRASLAM_* overrides.
 
-Sections: camera, slam, gis, alignment, mavlink, switching, supervisor, persistence, logging. Each package owns
-its section's model (slam/config.py, gis/config.py, mavlink_bridge/config.py); this module owns
-camera/supervisor/logging and the root.
+Sections: camera, slam, gis, alignment, mavlink, switching, supervisor, persistence, recording, logging. Each
+package owns its section's model (slam/config.py, gis/config.py, mavlink_bridge/config.py); this module owns
+camera/supervisor/persistence/recording/logging and the root.
 
 Environment overrides: ``TERRASLAM_<SECTION>__<KEY>=value`` (double underscore between levels),
 e.g. ``TERRASLAM_MAVLINK__CONNECT=/dev/ttyTHS1``. Values are parsed as YAML scalars.
@@ -59,6 +59,20 @@ class PersistenceConfig(BaseModel):
     max_restore_age_s: float = Field(1800.0, gt=0, description="an alignment older than this (wall clock) is not restored; the map still is")
 
 
+class RecordingConfig(BaseModel):
+    """Flight recorder (companion/recorder.py): what `terraslam run` feeds the pipeline, as a dataset
+    (docs/DATASET.md) that `terraslam replay` reads back."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(False, description="record every run of the service to dir/flight-<UTC time>/")
+    dir: Path | None = Field(None, description="where recordings go, one flight-<UTC time>/ folder per run (null: supervisor.state_dir/recordings)")
+    image_format: Literal["jpg", "png"] = Field("jpg", description="jpg (q95: 170 kB, 1.4 ms a noisy 640x480 simulator frame here); png: lossless, replays to the bit, 3x larger, 13x slower")
+    jpeg_quality: int = Field(95, ge=50, le=100)
+    min_free_mb: float = Field(1000.0, ge=0, description="stop recording (the service goes on) when the disk has less free space")
+    queue_frames: int = Field(64, ge=1, le=4096, description="frames waiting for the writer; when full, frames are left out of the recording, never delayed")
+
+
 class LoggingConfig(BaseModel):
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     json_logs: bool = Field(False, alias="json", description="one JSON object per log line")
@@ -79,6 +93,7 @@ class AppConfig(BaseModel):
     switching: SwitchingConfig = SwitchingConfig()
     supervisor: SupervisorConfig = SupervisorConfig()
     persistence: PersistenceConfig = PersistenceConfig()
+    recording: RecordingConfig = RecordingConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @model_validator(mode="after")

@@ -9,7 +9,7 @@ and assembled by hand from a real flight. Boring on purpose: YAML + CSV + PNG/JP
       images/frames.csv     seq,t_s,filename   (images/000000.png ...)
       truth.csv             optional: seq,t_s,lat_deg,lon_deg,h_ellipsoid_m,h_msl_m,roll_deg,pitch_deg,yaw_deg,vn_mps,ve_mps,vd_mps
       gnss.csv              optional: t_s,fix_type,lat_deg,lon_deg,alt_msl_m,h_ellipsoid_m,eph,epv,h_acc_m,v_acc_m,satellites,vn_mps,ve_mps,vd_mps,cog_deg
-      attitude.csv          optional: t_s,roll_rad,pitch_rad,yaw_rad,baro_alt_m
+      attitude.csv          optional: t_s,roll_rad,pitch_rad,yaw_rad,baro_alt_m (baro may be empty)
       gis/                  model files (PLY + .georef.json, LAS/LAZ, GeoJSON, CityJSON, ...)
 
 Truth and attitude angles are the body FRD frame in the local NED frame at the vehicle (ZYX
@@ -108,6 +108,19 @@ def _f(x, nd: int) -> str:
     return "" if x is None else f"{x:.{nd}f}"
 
 
+def gnss_row(g: GnssSample) -> list:
+    """One gnss.csv row (GNSS_COLUMNS); read_dataset gives back the sample these digits hold."""
+    return [_f(g.t_s, 6), int(g.fix_type), _f(g.lat_deg, 10), _f(g.lon_deg, 10), _f(g.alt_msl_m, 4), _f(g.h_ellipsoid_m, 4),
+            _f(g.eph, 2), _f(g.epv, 2), _f(g.h_acc_m, 3), _f(g.v_acc_m, 3), g.satellites,
+            *(["", "", ""] if g.vel_ned_mps is None else [_f(x, 3) for x in g.vel_ned_mps]), _f(g.cog_deg, 2)]
+
+
+def attitude_row(a) -> list:
+    """One attitude.csv row (ATTITUDE_COLUMNS) of an AttitudeSample or the bridge's VehicleAttitude
+    (whose baro_alt_m is None when no barometer reading was fresh: an empty cell)."""
+    return [_f(a.t_s, 6), _f(a.roll_rad, 7), _f(a.pitch_rad, 7), _f(a.yaw_rad, 7), _f(a.baro_alt_m, 3)]
+
+
 def truth_rows(scenario) -> list[list[str]]:
     tr = scenario.truth
     R_enu_body = tr.T_enu_body[:, :3, :3]
@@ -155,14 +168,8 @@ def write_dataset(scenario, out_dir: Path | str, progress: bool = True, image_ex
         "gnss_events": [vars(e) for e in scenario.spec.gnss.events],
     }, sort_keys=False))
     _write_csv(out / "truth.csv", TRUTH_COLUMNS, truth_rows(scenario))
-    _write_csv(out / "gnss.csv", GNSS_COLUMNS, [
-        [_f(g.t_s, 6), int(g.fix_type), _f(g.lat_deg, 10), _f(g.lon_deg, 10), _f(g.alt_msl_m, 4), _f(g.h_ellipsoid_m, 4),
-         _f(g.eph, 2), _f(g.epv, 2), _f(g.h_acc_m, 3), _f(g.v_acc_m, 3), g.satellites,
-         *(["", "", ""] if g.vel_ned_mps is None else [_f(x, 3) for x in g.vel_ned_mps]), _f(g.cog_deg, 2)]
-        for g in scenario.gnss_samples])
-    _write_csv(out / "attitude.csv", ATTITUDE_COLUMNS, [
-        [_f(a.t_s, 6), _f(a.roll_rad, 7), _f(a.pitch_rad, 7), _f(a.yaw_rad, 7), _f(a.baro_alt_m, 3)]
-        for a in scenario.attitude_samples])
+    _write_csv(out / "gnss.csv", GNSS_COLUMNS, [gnss_row(g) for g in scenario.gnss_samples])
+    _write_csv(out / "attitude.csv", ATTITUDE_COLUMNS, [attitude_row(a) for a in scenario.attitude_samples])
     names = [f"{i:06d}{image_ext}" for i in range(scenario.n_frames)]
     _write_csv(img_dir / "frames.csv", ("seq", "t_s", "filename"),
                [[i, _f(start.t_s[i], 6), n] for i, n in enumerate(names)])
@@ -330,6 +337,6 @@ def read_dataset(path: Path | str) -> Dataset:
     attitude = []
     if (root / "attitude.csv").is_file():
         attitude = [AttitudeSample(r["t_s"], r["roll_rad"], r["pitch_rad"], r["yaw_rad"], r["baro_alt_m"])
-                    for r in _read_csv(root / "attitude.csv", ATTITUDE_COLUMNS)]
+                    for r in _read_csv(root / "attitude.csv", ATTITUDE_COLUMNS[:-1], ATTITUDE_COLUMNS[-1:])]
     return Dataset(root, str(meta.get("name", root.name)), fps, camera, T, origin, rough, gis_files, t_frames, paths,
                    truth, gnss, attitude, meta)

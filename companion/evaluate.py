@@ -78,13 +78,20 @@ def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray) -> FixErrors:
     return FixErrors(np.array([f.t_s for f in fixes]), err_ned, np.array([f.h_acc_m for f in fixes]))
 
 
+FIX_COLUMNS = ("t_s", "lat_deg", "lon_deg", "h_ellipsoid_m", "h_msl_m", "h_acc_m", "v_acc_m", "source")
+
+
+def fix_row(x: GlobalFix) -> list[str]:
+    """One trajectory.csv / fixes.csv row (FIX_COLUMNS)."""
+    return [f"{x.t_s:.6f}", f"{x.lat_deg:.9f}", f"{x.lon_deg:.9f}", f"{x.h_ellipsoid_m:.4f}", f"{x.h_msl_m:.4f}",
+            f"{x.h_acc_m:.4f}", f"{x.v_acc_m:.4f}", x.source.value]
+
+
 def write_csv(fixes: list[GlobalFix], path: Path) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["t_s", "lat_deg", "lon_deg", "h_ellipsoid_m", "h_msl_m", "h_acc_m", "v_acc_m", "source"])
-        for x in fixes:
-            w.writerow([f"{x.t_s:.6f}", f"{x.lat_deg:.9f}", f"{x.lon_deg:.9f}", f"{x.h_ellipsoid_m:.4f}", f"{x.h_msl_m:.4f}",
-                        f"{x.h_acc_m:.4f}", f"{x.v_acc_m:.4f}", x.source.value])
+        w.writerow(FIX_COLUMNS)
+        w.writerows(fix_row(x) for x in fixes)
 
 
 def write_tum(fixes: list[GlobalFix], origin: LocalFrame, path: Path) -> None:

@@ -10,6 +10,10 @@ alignment to ``<state_dir>/slam_map.npz`` every ``persistence.save_every_s``, so
 accepted alignment and at clean shutdown. On start, a saved map is loaded and SLAM relocalises in
 it; its alignment (same map, same GIS site, not too old) is restored with an inflated covariance,
 so fixes resume as soon as tracking does, also when GNSS is gone.
+
+Recording (``recording.enabled``, companion/recorder.py): the frames the hot path tracked, every
+GNSS and attitude message the bridge received and our fixes go to a dataset folder that
+`terraslam replay` reads, for field trials.
 """
 from __future__ import annotations
 
@@ -57,6 +61,22 @@ def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
               f"σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m)", map_id=h.map_id, sigma_m=a.sigma_m)
 
 
+def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str):
+    """The flight recorder when ``recording.enabled`` (companion/recorder.py); None, logged, when its
+    folder cannot be made: a recorder problem never stops the service."""
+    if not cfg.recording.enabled:
+        return None
+    from companion.recorder import open_recording
+
+    root = cfg.recording.dir or cfg.supervisor.state_dir / "recordings"
+    try:
+        return open_recording(root, cfg.recording, camera, T_body_cam, cfg.camera.fps, model.origin,
+                              [cfg.gis.model.expanduser()], site_id)
+    except OSError as e:
+        log_event(log, "recording_unavailable", f"flight recorder off for this run: {e}", level=logging.ERROR)
+        return None
+
+
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer
@@ -84,7 +104,9 @@ def run_service(cfg: AppConfig) -> int:
         _restore_alignment(cfg, localizer, restored)
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
              if cfg.persistence.enabled else None)
-    bridge = Bridge(cfg.mavlink, cfg.switching).start()
+    recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id)
+    bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=recorder.on_gnss if recorder else None,
+                    on_attitude=recorder.on_attitude if recorder else None).start()
     latency = LatencyTracker()
     saved = {"t": None, "alignment": localizer.alignment}
 
@@ -125,6 +147,8 @@ def run_service(cfg: AppConfig) -> int:
             bridge.submit_fix(rec.fix)
             latency.mark(frame.seq, "wire")
             latency.finish(frame.seq)
+            if recorder is not None:
+                recorder.on_frame(frame, rec.fix)
             save_fine()
             alignment_changed()
             ctx.beat()
@@ -132,6 +156,8 @@ def run_service(cfg: AppConfig) -> int:
     stage = Stage("hot-path", hot_path, deadline_s=max(2.0, 3 * cfg.camera.stall_timeout_s),
                   restart_limit=cfg.supervisor.stage_restart_limit)
     sup = Supervisor([stage], watchdog=cfg.supervisor.watchdog)
+    if recorder is not None:
+        sup.on_shutdown("close recording", recorder.close)  # hooks run newest first: this one last
     sup.on_shutdown("close camera", source.close)
     sup.on_shutdown("close bridge", bridge.close)
     sup.on_shutdown("close localizer", localizer.close)

@@ -14,6 +14,7 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
 from mavlink_bridge.link import Link, load_signing_key
 from mavlink_bridge.monitor import EKF_STATUS_GPS_GLITCH, ESTIMATOR_GPS_GLITCH, GnssMonitor, sample_from_gps_raw
 from mavlink_bridge.policy import BridgeState, SwitchEvent, SwitchPolicy
-from mavlink_bridge.types import GnssStatus, VehicleAttitude
+from mavlink_bridge.types import GnssSample, GnssStatus, VehicleAttitude
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -59,9 +60,14 @@ def _q_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 class Bridge:
-    def __init__(self, mav_cfg: MavlinkConfig, sw_cfg: SwitchingConfig, clock=time.monotonic):
+    def __init__(self, mav_cfg: MavlinkConfig, sw_cfg: SwitchingConfig, clock=time.monotonic,
+                 on_gnss: Callable[[GnssSample], None] | None = None,
+                 on_attitude: Callable[[VehicleAttitude], None] | None = None):
+        """``on_gnss`` / ``on_attitude``: called on the receive thread with every GNSS solution and
+        attitude received from the autopilot (the flight recorder); they must not block."""
         emitters.check_profile(mav_cfg)
         self.cfg, self.sw_cfg, self.clock = mav_cfg, sw_cfg, clock
+        self._on_gnss, self._on_attitude = on_gnss, on_attitude
         self._key = load_signing_key(mav_cfg.signing_key_file) if mav_cfg.signing_key_file else None
         self.monitor = GnssMonitor(sw_cfg, mav_cfg.uere_m)
         self.policy = SwitchPolicy(sw_cfg)
@@ -222,6 +228,8 @@ class Bridge:
             sample = sample_from_gps_raw(msg, now)
             with self._lock:
                 self.monitor.on_sample(sample)
+            if self._on_gnss is not None:
+                self._on_gnss(sample)
         elif t == "EKF_STATUS_REPORT":
             with self._lock:
                 self.monitor.on_ekf_flags(bool(msg.flags & EKF_STATUS_GPS_GLITCH), now)
@@ -234,7 +242,9 @@ class Bridge:
                 off = self._stats.boot_offset_s  # stamp with the autopilot's own time when known
                 t_att = msg.time_boot_ms / 1000.0 + off if off is not None else now
                 baro = self._baro[1] if self._baro is not None and now - self._baro[0] <= BARO_MAX_AGE_S else None
-                self._attitude = VehicleAttitude(min(t_att, now), msg.roll, msg.pitch, msg.yaw, baro)
+                self._attitude = att = VehicleAttitude(min(t_att, now), msg.roll, msg.pitch, msg.yaw, baro)
+            if self._on_attitude is not None:
+                self._on_attitude(att)
         elif t == "ALTITUDE":  # PX4: altitude_monotonic is the barometric altitude
             if math.isfinite(msg.altitude_monotonic):
                 with self._lock:

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+import yaml
 
 from test_companion_supervisor import NotifyListener  # tests/ is on sys.path (no package)
 
@@ -57,9 +58,10 @@ def gis_mesh(tmp_path_factory) -> Path:
     return export_gis(gis_world, tmp_path_factory.mktemp("gis"), seed=0).mesh_ply
 
 
-def _write_config(tmp_path: Path, model: Path, port: int, fps: float = 10.0, max_fix_age_s: float = 0.5) -> Path:
+def _write_config(tmp_path: Path, model: Path, port: int, fps: float = 10.0, max_fix_age_s: float = 0.5,
+                  record: bool = False) -> Path:
     cfg = tmp_path / "config.yaml"
-    cfg.write_text(
+    cfg.write_text(('recording:\n  enabled: true\n  image_format: png\n' if record else "") +
         "camera:\n"
         "  source: sim\n"
         f"  fps: {fps}\n"
@@ -293,7 +295,7 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
     sim = SimAutopilot("ardupilot", params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}).start()
     notify = TimedListener()
     log_path = tmp_path / "service.log"
-    cfg = _write_config(tmp_path, gis_mesh, sim.port, fps=SIM_FPS, max_fix_age_s=MAX_FIX_AGE_S)
+    cfg = _write_config(tmp_path, gis_mesh, sim.port, fps=SIM_FPS, max_fix_age_s=MAX_FIX_AGE_S, record=True)
     with open(log_path, "wb") as log_file:
         proc = subprocess.Popen([str(TERRASLAM), "run", "--config", str(cfg)], env=_service_env(notify.lst.environ),
                                 stdout=log_file, stderr=subprocess.STDOUT)
@@ -383,6 +385,41 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
     # the worker processes were killed during the outage, and bundle adjustment came back by itself
     assert len(killed) == 2, diag
     assert "bundle-adjustment worker process had died: starting a new one" in log_text, diag
+    _check_recording(tmp_path / "state" / "recordings", feed, loss_at, fixes_3d, diag)
+
+
+def _check_recording(root: Path, feed: "VehicleFeed", loss_at: float, fixes_3d: list, diag: str) -> None:
+    """The run's flight recording (recording.enabled): a dataset of the frames the service tracked,
+    every GNSS solution and attitude the bridge received and the fixes it computed, on one clock
+    (monotonic; flight time + the playback epoch), that `terraslam replay` sees the GNSS loss in."""
+    from companion.app import run_replay
+    from companion.config import load_config
+    from companion.dataset import read_dataset
+
+    (out,) = root.glob("flight-*")
+    ds = read_dataset(out)
+    meta = yaml.safe_load((out / "dataset.yaml").read_text())["recording"]
+    t_frames = ds.frame_t_s - feed.epoch_s
+    g_t = np.array([g.t_s for g in ds.gnss]) - feed.epoch_s
+    g_fix = np.array([int(g.fix_type) >= 3 for g in ds.gnss])
+    print(f"recording {out.name}: {ds.n_frames} frames at flight t {t_frames[0]:.1f}..{t_frames[-1]:.1f} s, "
+          f"{len(ds.gnss)} GNSS, {len(ds.attitude)} attitude; {meta}")
+    assert meta["complete"] and meta["frames_dropped"] == 0 and meta["samples_retimed"] == 0, f"{meta}\n{diag}"
+    assert t_frames[0] < loss_at - 5.0 and t_frames[-1] > loss_at + 2.0, diag
+    assert np.all(np.diff(t_frames) > 0.3), "2 fps: every frame the service tracked, each once"
+    # GNSS as the autopilot reported it: 3D fixes before the loss, none after (5 Hz, fed on the flight clock)
+    assert g_fix[g_t < loss_at - 0.5].all() and not g_fix[g_t > loss_at + 0.5].any(), diag
+    assert np.sum(g_t < loss_at) >= 4 * (loss_at - g_t[0]), diag
+    assert len(ds.attitude) >= 10 * (t_frames[-1] - t_frames[0]), diag  # ATTITUDE streams at the 20 Hz the bridge asks for
+    with open(out / "fixes.csv") as f:
+        fixes = [line.split(",") for line in f.read().splitlines()[1:]]
+    assert sum(float(r[1]) - feed.epoch_s > loss_at for r in fixes) >= len(fixes_3d) - 2, diag
+    summary = run_replay(load_config(environ={}), out, root.parent / "replay", repeatable=True)
+    assert summary["frames"] == ds.n_frames
+    # replayed, the GNSS monitor judges the recorded solutions: lost where the flight lost them
+    # (the first frames, before the bridge had any GNSS, count as a loss too)
+    lost_t = [t - feed.epoch_s for t, _ in summary["switch_events"]]
+    assert any(abs(t - loss_at) < 1.0 for t in lost_t), (lost_t, loss_at, diag)
 
 
 def _truncated_copy(src: Path, dst_dir: Path) -> Path:

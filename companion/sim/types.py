@@ -39,7 +39,7 @@ class AttitudeSample:
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
-    baro_alt_m: float
+    baro_alt_m: float | None  # None: no barometer reading (an empty cell in a dataset's attitude.csv)
 
 
 @dataclass(frozen=True)

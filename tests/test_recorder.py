@@ -1,0 +1,120 @@
+"""The flight recorder (companion/recorder.py): what `terraslam run` feeds the pipeline, written as a
+dataset that `terraslam replay` reads back. Real parts: simulator frames, GNSS and attitude logs, real
+PNG/JPEG files, the real dataset reader and the real replay pipeline. The service writing one over
+real MAVLink is in test_service_e2e.py."""
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.app import run_replay
+from companion.config import RecordingConfig, load_config
+from companion.dataset import read_dataset, write_dataset
+from companion.recorder import open_recording
+from companion.sim import make_scenario
+
+
+def _record(ds, root: Path, cfg: RecordingConfig, steps=None):
+    """Feed a dataset's steps to a recorder as the service does: the bridge hands over every GNSS
+    and attitude message as it arrives, the hot path each frame it tracked."""
+    rec = open_recording(root, cfg, ds.camera, ds.T_body_cam, ds.fps, ds.origin, ds.gis_files[:1], "site-test")
+    for step in steps if steps is not None else ds.steps():
+        for g in step.gnss:
+            rec.on_gnss(g)
+        for a in step.attitude:
+            rec.on_attitude(a)
+        rec.on_frame(step.frame, None)
+    return rec, rec.close()
+
+
+def test_a_recorded_flight_replays_to_the_same_fixes(tmp_path: Path) -> None:
+    """Recorded losslessly, a flight replays (repeatable) to the same fixes, to the bit, as the
+    flight it was recorded from: the recording holds everything the pipeline uses."""
+    src = write_dataset(make_scenario("nominal", seed=0, n_frames=150, fps=10), tmp_path / "src", progress=False)
+    ds = read_dataset(src)
+    cfg = load_config(environ={})
+    direct = run_replay(cfg, src, tmp_path / "direct", repeatable=True)
+
+    rec, stats = _record(ds, tmp_path / "recordings", RecordingConfig(image_format="png", queue_frames=4096))
+    assert (stats.frames, stats.frames_dropped, stats.gnss, stats.attitude) == (150, 0, len(ds.gnss), len(ds.attitude))
+    assert rec.out.parent == tmp_path / "recordings" and rec.out.name.startswith("flight-")
+    replayed = run_replay(cfg, rec.out, tmp_path / "replayed", repeatable=True)
+
+    a = (tmp_path / "direct" / "trajectory.csv").read_text()
+    b = (tmp_path / "replayed" / "trajectory.csv").read_text()
+    assert direct["fix_ratio_all"] > 0.2, "the flight must be long enough to align and send fixes"
+    assert a == b
+    assert replayed["frames"] == direct["frames"] == 150
+
+    meta = yaml.safe_load((rec.out / "dataset.yaml").read_text())
+    assert meta["n_frames"] == 150 and meta["recording"]["complete"] and meta["recording"]["frames_dropped"] == 0
+    site = yaml.safe_load((rec.out / "site.yaml").read_text())
+    first_fix = next(g for g in ds.gnss if g.fix_type >= 3)
+    assert (site["rough_position"]["lat_deg"], site["rough_position"]["lon_deg"]) == (first_fix.lat_deg, first_fix.lon_deg)
+    assert site["gis"]["files"] == [str(ds.gis_files[0].resolve())] and site["gis"]["site_id"] == "site-test"
+
+
+def test_a_slow_writer_drops_frames_from_the_recording_and_says_so(tmp_path: Path) -> None:
+    """A writer behind the camera leaves frames out (the hot path never waits) and counts them; the
+    frames it kept are the pipeline's, at their times, and attitude whose time went back is written
+    at the previous time (the format needs time order) and counted."""
+    src = write_dataset(make_scenario("nominal", seed=1, n_frames=40, fps=10), tmp_path / "src", progress=False)
+    ds = read_dataset(src)
+    steps = list(ds.steps())  # decoded before feeding: the feed is as fast as the hot path's put
+    late = replace(ds.attitude[5], t_s=ds.attitude[5].t_s - 0.05, baro_alt_m=None)
+    steps[1] = replace(steps[1], attitude=steps[1].attitude + [late])
+    t0 = time.perf_counter()
+    rec, stats = _record(ds, tmp_path / "rec", RecordingConfig(image_format="jpg", queue_frames=4), steps)
+    print(f"40 frames: {stats.frames} recorded, {stats.frames_dropped} dropped, {time.perf_counter() - t0:.2f} s")
+    assert stats.frames + stats.frames_dropped == 40 and stats.frames_dropped >= 1
+    assert stats.samples_retimed == 1 and stats.attitude == len(ds.attitude) + 1
+
+    back = read_dataset(rec.out)
+    assert back.n_frames == stats.frames
+    kept = [int(p.stem) for p in back.frame_paths]
+    assert kept == sorted(kept) and set(kept) <= set(range(40))
+    np.testing.assert_array_equal(back.frame_t_s, ds.frame_t_s[kept])
+    img, orig = back.image(0), ds.image(kept[0])
+    assert img.shape == orig.shape and np.mean(np.abs(img.astype(float) - orig)) < 3.0  # JPEG q95
+    meta = yaml.safe_load((rec.out / "dataset.yaml").read_text())["recording"]
+    assert meta["frames_dropped"] == stats.frames_dropped and meta["samples_retimed"] == 1 and meta["complete"]
+    assert [a.baro_alt_m for a in back.attitude].count(None) == 1
+
+
+def test_a_write_error_stops_the_recording_not_the_caller(tmp_path: Path) -> None:
+    """The recording disk goes away mid-flight: the recorder stops with the reason, keeps taking
+    (and ignoring) the hot path's calls, and closes with what it has said in dataset.yaml."""
+    src = write_dataset(make_scenario("nominal", seed=2, n_frames=12, fps=10), tmp_path / "src", progress=False)
+    ds = read_dataset(src)
+    steps = list(ds.steps())
+    rec = open_recording(tmp_path / "rec", RecordingConfig(queue_frames=64), ds.camera, ds.T_body_cam, ds.fps,
+                         ds.origin, ds.gis_files[:1])
+    for s in steps[:4]:
+        rec.on_frame(s.frame, None)
+    deadline = time.monotonic() + 10.0
+    while rec.stats.frames < 4 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert rec.stats.frames == 4
+    shutil.rmtree(rec.out / "images")
+    for s in steps[4:]:
+        rec.on_frame(s.frame, None)
+        for g in s.gnss:
+            rec.on_gnss(g)
+    stats = rec.close()
+    assert stats.stopped is not None and "write failed" in stats.stopped and stats.frames == 4
+    meta = yaml.safe_load((rec.out / "dataset.yaml").read_text())["recording"]
+    assert meta["stopped"] == stats.stopped and meta["complete"] is False
+
+
+def test_no_recording_is_started_on_a_disk_under_min_free(tmp_path: Path) -> None:
+    ds_cam = make_scenario("nominal", n_frames=1)
+    with pytest.raises(OSError, match="min_free_mb"):
+        open_recording(tmp_path / "rec", RecordingConfig(min_free_mb=1e12), ds_cam.camera, ds_cam.T_body_cam, 10.0,
+                       ds_cam.origin, [])
+    assert not any((tmp_path / "rec").glob("flight-*"))
