@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Icp, _jacobian,
+from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Icp, _jacobian,
                              _measurement_cov, _update, enu_sim3)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
@@ -282,19 +282,29 @@ def test_fine_with_prior_improves_the_camera_and_reports_an_honest_sigma(city):
     assert np.all(np.linalg.eigvalsh(a.information_6x6) > 0)
 
 
-def test_fine_refuses_vague_prior_and_prior_disagreement(city):
+def test_fine_refuses_a_vague_prior(city):
     p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
     # prior σ beyond the ICP's basin of convergence
     reg = FineTuner(city).register(_slam(p), _prior_about(cam, (2.0, -1.0, 0.5), sigma_t_m=5.0), 1.0, 0, center_slam=_slam(cam))
     assert reg.alignment is None and "prior too vague" in reg.reason
-    # a clean cloud 2.5 m from a prior that claims 0.1 m: both cannot be right
+
+
+def test_a_registration_that_disagrees_with_its_prior_is_fused_with_both_covariances_widened(city):
+    """A clean cloud 2.5 m from a prior that claims 0.1 m: both cannot be right. The fusion keeps
+    the Kalman gain (here: the data's place) and widens the posterior by χ²/7, so the fix's σ
+    covers its error; a plain update would claim less than the prior's 0.1 m."""
     c = np.array([20.0, -10, 0])
     clean = slam_like_cloud(city, c, 60, 3000, noise_m=0.05, seed=2)
     cam = c + np.array([0.0, 0.0, 60.0])
     prior = _prior_about(cam, (2.5, 0.0, 0.0), drot_deg=(0, 0, 0), sigma_t_m=0.1, sigma_rot_deg=0.1)
     reg = FineTuner(city).register(_slam(clean), prior, 1.0, 0, center_slam=_slam(cam))
-    assert reg.alignment is None and "inconsistent with the prior" in reg.reason, reg.reason
-    assert reg.jump_m > 2.0  # the data did find the right place; the prior's claim is what fails
+    assert "inconsistent with the prior" in reg.reason and reg.nis > CHI2_999, reg.reason
+    a = reg.alignment
+    assert a is not None and reg.jump_m > 2.0  # the data found the right place
+    e0 = np.linalg.norm(prior.T_ecef_slam.apply(_slam(cam)) - T_ECEF_SLAM.apply(_slam(cam)))
+    e1 = np.linalg.norm(a.T_ecef_slam.apply(_slam(cam)) - T_ECEF_SLAM.apply(_slam(cam)))
+    assert e1 < 0.2 * e0 and e1 <= 3 * a.sigma_m, (e0, e1, a.sigma_m)
+    assert a.sigma_m > 2 * 0.1, a.sigma_m
 
 
 def test_update_is_the_kalman_update():
