@@ -468,9 +468,9 @@ class FineTuner:
             # covariances are scaled by the innovation's own estimate of their common factor,
             # α = χ²/7 (innovation-based adaptive estimation, Mehra 1970): the gain, and so the
             # fused mean, is unchanged, and P⁺ grows by α. Refusing it instead kept the prior
-            # (demo seed 2: a scale break in a turn left the prior 2.3 and 3.5 m off with a
-            # 0.9 / 1.5 m σ; the refused registrations would have left it 0.9 / 1.2 m off) and the
-            # error grew to 4 m. docs/BENCHMARKS.md, "Disagreeing registrations are fused, wider".
+            # (demo seed 2: a scale break in a turn left the prior 1.9 and 3.2 m off horizontally
+            # with a 0.9 / 1.5 m σ; the refused registrations would have left it 0.9 / 1.2 m off)
+            # and the error grew to 4 m. docs/BENCHMARKS.md, "Disagreeing registrations are fused, wider".
             alpha = nis / 7.0
             P_post = alpha * P_post
             sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
