@@ -55,6 +55,10 @@ class SimClock:
 #: board (suite means 80–145 ms); bench counts the registrations that took longer.
 REPEATABLE_LAG_S = 0.3
 
+#: Replay: a frame goes with the newest ATTITUDE up to this old, also when none arrived since the
+#: previous frame (what the service asks of ``Bridge.attitude``).
+ATTITUDE_MAX_AGE_S = 0.1
+
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
                     initial_alignment: Alignment | None = None, initial_map=None,
@@ -373,6 +377,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
     run = RunLog()
     n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)
     lost_since: float | None = None
+    last_att = None
     try:
         for k, step in enumerate(ds.steps()):
             if k >= n:
@@ -390,7 +395,11 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
                 lost_since = None
             localizer.settle(step.frame.t_s)
             t0 = time.perf_counter()
-            prior = attitude_prior(step.attitude[-1]) if step.attitude else None
+            # the newest attitude up to 0.1 s old, as the service asks the bridge for it: a camera
+            # faster than the autopilot's ATTITUDE stream has frames with no sample of their own
+            last_att = step.attitude[-1] if step.attitude else last_att
+            fresh = last_att is not None and step.frame.t_s - last_att.t_s <= ATTITUDE_MAX_AGE_S
+            prior = attitude_prior(last_att) if fresh else None
             rec = localizer.process(PipelineInput(step.frame, status.sample, good, prior))
             monitor.on_vision_check(localizer.gnss_inconsistency())
             run.wall_track_ms.append((time.perf_counter() - t0) * 1e3)
