@@ -177,12 +177,15 @@ class FlightRecorder:
         if self._thread.is_alive():
             self._frames.put(None)
             self._thread.join()
-        for c in (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix):
-            if not c.f.closed:
-                c.f.flush()
-                os.fsync(c.f.fileno())
-                c.f.close()
-        self._write_meta(final=True)
+        try:
+            for c in (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix):
+                if not c.f.closed:
+                    c.f.flush()
+                    os.fsync(c.f.fileno())
+                    c.f.close()
+            self._write_meta(final=True)
+        except OSError as e:  # the disk went away: what was written stays readable up to its last fsync
+            log.error("flight recorder: closing %s failed: %s", self.out, e)
         s = self.stats
         log_event(log, "recording_closed", f"recording {self.out}: {s.frames} frames ({s.frames_dropped} dropped), "
                   f"{s.gnss} GNSS, {s.attitude} attitude samples" + (f"; stopped early: {s.stopped}" if s.stopped else ""),
@@ -211,6 +214,9 @@ class FlightRecorder:
                         os.fsync(c.f.fileno())
             except OSError as e:  # ENOSPC, EIO, a pulled USB stick: the recording ends, the service goes on
                 self._stop(f"write failed: {e}")
+            except Exception as e:  # noqa: BLE001 — e.g. cv2.error on an image it cannot encode: the same
+                log.exception("flight recorder failed")
+                self._stop(f"{type(e).__name__}: {e}")
             if item is None or self.stats.stopped is not None:
                 self._write_samples_quietly()
                 return
