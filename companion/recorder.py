@@ -7,7 +7,7 @@ recorder keeps what the hot path gave the pipeline, on the clock it used (the co
 
     <recording.dir, default supervisor.state_dir/recordings>/flight-YYYYmmddTHHMMSSZ/
       dataset.yaml, site.yaml, camera.yaml, mount.yaml   the dataset's metadata (rewritten at close)
-      images/frames.csv + images/NNNNNN.jpg|png          every frame the pipeline tracked, as delivered
+      images/frames.csv + images/NNNNNN.jpg|png          every frame the pipeline tracked, as delivered, numbered in order
                                                          (undistorted: camera.yaml is the delivered model)
       gnss.csv                                           every GNSS solution the bridge received
       attitude.csv                                       every ATTITUDE (+ barometer) the bridge received
@@ -218,14 +218,7 @@ class FlightRecorder:
                 log.exception("flight recorder failed")
                 self._stop(f"{type(e).__name__}: {e}")
             if item is None or self.stats.stopped is not None:
-                self._write_samples_quietly()
                 return
-
-    def _write_samples_quietly(self) -> None:
-        try:
-            self._write_samples()
-        except OSError:
-            pass
 
     def _write_samples(self) -> None:
         if self.stats.stopped is not None:
@@ -254,7 +247,7 @@ class FlightRecorder:
         if f.t_s <= self._csv_frames.last_t_s:  # the dataset needs strictly increasing frame times
             log.warning("frame %d at %.6f s not after the previous recorded frame: not recorded", f.seq, f.t_s)
             return
-        name = f"{f.seq:06d}{self._ext}"
+        name = f"{self.stats.frames:06d}{self._ext}"  # not the source's seq: it restarts when a camera is reopened
         ok, buf = cv2.imencode(self._ext, np.ascontiguousarray(f.image), self._params)
         if not ok:
             raise OSError(f"cannot encode frame {f.seq} as {self._ext}")
