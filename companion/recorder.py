@@ -247,7 +247,7 @@ class FlightRecorder:
         if f.t_s <= self._csv_frames.last_t_s:  # the dataset needs strictly increasing frame times
             log.warning("frame %d at %.6f s not after the previous recorded frame: not recorded", f.seq, f.t_s)
             return
-        name = f"{self.stats.frames:06d}{self._ext}"  # not the source's seq: it restarts when a camera is reopened
+        name = f"{self.stats.frames:06d}{self._ext}"  # the recorder's own count: names never depend on the source's counter
         ok, buf = cv2.imencode(self._ext, np.ascontiguousarray(f.image), self._params)
         if not ok:
             raise OSError(f"cannot encode frame {f.seq} as {self._ext}")
