@@ -121,6 +121,11 @@ def attitude_row(a) -> list:
     return [_f(a.t_s, 6), _f(a.roll_rad, 7), _f(a.pitch_rad, 7), _f(a.yaw_rad, 7), _f(a.baro_alt_m, 3)]
 
 
+def write_mount(path: Path, T_body_cam: np.ndarray) -> None:
+    """mount.yaml: the 4x4 camera (OpenCV) → body (FRD) transform."""
+    path.write_text(yaml.safe_dump({"T_body_cam": np.round(np.asarray(T_body_cam, float), 12).tolist()}))
+
+
 def truth_rows(scenario) -> list[list[str]]:
     tr = scenario.truth
     R_enu_body = tr.T_enu_body[:, :3, :3]
@@ -160,7 +165,7 @@ def write_dataset(scenario, out_dir: Path | str, progress: bool = True, image_ex
                 "crs": files.crs},
     }, sort_keys=False))
     write_calibration(out / "camera.yaml", scenario.camera)
-    (out / "mount.yaml").write_text(yaml.safe_dump({"T_body_cam": np.round(scenario.T_body_cam, 12).tolist()}))
+    write_mount(out / "mount.yaml", scenario.T_body_cam)
     (out / "dataset.yaml").write_text(yaml.safe_dump({
         "format_version": FORMAT_VERSION, "name": scenario.name, "fps": float(scenario.fps),
         "n_frames": int(scenario.n_frames), "generator": f"terraslam sim (seed {scenario.seed})",

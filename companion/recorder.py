@@ -47,7 +47,7 @@ import yaml
 
 from companion.calibration import write_calibration
 from companion.config import RecordingConfig
-from companion.dataset import ATTITUDE_COLUMNS, FORMAT_VERSION, GNSS_COLUMNS, attitude_row, gnss_row
+from companion.dataset import ATTITUDE_COLUMNS, FORMAT_VERSION, GNSS_COLUMNS, attitude_row, gnss_row, write_mount
 from companion.evaluate import FIX_COLUMNS, fix_row
 from companion.logs import log_event
 from gis.geodesy import LocalFrame
@@ -105,6 +105,12 @@ def _unique_dir(root: Path, stem: str) -> Path:
     return out
 
 
+def _disk_short(path: Path, min_free_mb: float) -> str | None:
+    """Why the disk holding ``path`` is too full to record on, or None."""
+    free_mb = shutil.disk_usage(path).free / 2**20
+    return f"{path}: {free_mb:.0f} MB free, under recording.min_free_mb {min_free_mb:g}" if free_mb < min_free_mb else None
+
+
 def _write_yaml(path: Path, doc: dict) -> None:
     """Written whole or not at all (a cut write must not leave half a YAML file)."""
     tmp = path.with_name(f".{path.name}.tmp")
@@ -133,6 +139,7 @@ class FlightRecorder:
         self._csv_gnss = _Csv.open(out / "gnss.csv", GNSS_COLUMNS)
         self._csv_att = _Csv.open(out / "attitude.csv", ATTITUDE_COLUMNS)
         self._csv_fix = _Csv.open(out / "fixes.csv", ("seq",) + FIX_COLUMNS)
+        self._csvs = (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix)
         self._thread = threading.Thread(target=self._run, name="flight-recorder", daemon=True)
 
     # ---- any thread ----------------------------------------------------------------------
@@ -178,7 +185,7 @@ class FlightRecorder:
             self._frames.put(None)
             self._thread.join()
         try:
-            for c in (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix):
+            for c in self._csvs:
                 if not c.f.closed:
                     c.f.flush()
                     os.fsync(c.f.fileno())
@@ -210,7 +217,7 @@ class FlightRecorder:
                     self._check_disk()
                 if now - last_sync >= FSYNC_EVERY_S:
                     last_sync = now
-                    for c in (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix):
+                    for c in self._csvs:
                         os.fsync(c.f.fileno())
             except OSError as e:  # ENOSPC, EIO, a pulled USB stick: the recording ends, the service goes on
                 self._stop(f"write failed: {e}")
@@ -259,9 +266,9 @@ class FlightRecorder:
         self.stats.frames += 1
 
     def _check_disk(self) -> None:
-        free_mb = shutil.disk_usage(self.out).free / 2**20
-        if free_mb < self.cfg.min_free_mb:
-            self._stop(f"{free_mb:.0f} MB free on the recording disk, under recording.min_free_mb {self.cfg.min_free_mb:g}")
+        short = _disk_short(self.out, self.cfg.min_free_mb)
+        if short:
+            self._stop(short)
 
     def _stop(self, why: str) -> None:
         self.stats.stopped = why
@@ -310,12 +317,12 @@ def open_recording(root: Path, cfg: RecordingConfig, camera: CameraModel, T_body
     runs without)."""
     root = Path(root).expanduser()
     root.mkdir(parents=True, exist_ok=True)
-    free_mb = shutil.disk_usage(root).free / 2**20
-    if free_mb < cfg.min_free_mb:
-        raise OSError(f"{root}: {free_mb:.0f} MB free, under recording.min_free_mb {cfg.min_free_mb:g}")
+    short = _disk_short(root, cfg.min_free_mb)
+    if short:
+        raise OSError(short)
     out = _unique_dir(root, "flight-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ"))
     rec = FlightRecorder(out, cfg, fps, origin, gis_files, site_id)
     write_calibration(out / "camera.yaml", camera)
-    _write_yaml(out / "mount.yaml", {"T_body_cam": np.round(np.asarray(T_body_cam, float), 12).tolist()})
+    write_mount(out / "mount.yaml", T_body_cam)
     return rec.start()
 
