@@ -12,14 +12,14 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
 from companion.config import AppConfig
-from companion.evaluate import fix_errors, stats, write_csv, write_geojson, write_report, write_tum
+from companion.evaluate import FixErrors, GnssReference, fix_errors, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
 from gis.globalizer import Globalizer
@@ -27,7 +27,7 @@ from gis.loaders import load_model
 from gis.model import GisModel
 from gis.types import Alignment
 from mavlink_bridge.monitor import GnssMonitor
-from mavlink_bridge.types import GnssQuality
+from mavlink_bridge.types import GnssQuality, no_fix_sample
 from slam.types import CameraModel
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,39 @@ REPEATABLE_LAG_S = 0.3
 #: Replay: a frame goes with the newest ATTITUDE up to this old, also when none arrived since the
 #: previous frame (what the service asks of ``Bridge.attitude``).
 ATTITUDE_MAX_AGE_S = 0.1
+
+
+@dataclass(frozen=True)
+class GnssDenial:
+    """Replay only: GNSS withheld from the pipeline as if jammed, from ``from_s`` until ``until_s``
+    seconds after the dataset's first frame (``t0_s``, bound by run_replay; open end: inf).
+
+    Each withheld solution still reaches the GNSS monitor, as a no-fix report at its own time (what
+    GPS_RAW_INT reads under jamming), so the takeover, the denied fine-tuning period and the return
+    of GNSS run as in the service. The withheld 3D solutions are the reference the fixes sent
+    meanwhile are judged against (evaluate.GnssReference): a recorded field flight, which has no
+    truth, becomes a GNSS-denial trial with the receiver as its yardstick."""
+
+    from_s: float
+    until_s: float = math.inf
+    t0_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.from_s) and self.from_s >= 0.0):
+            raise ValueError(f"GNSS denial: start {self.from_s} s must be ≥ 0 s after the first frame")
+        if not self.until_s > self.from_s:
+            raise ValueError(f"GNSS denial: end {self.until_s} s must come after its start {self.from_s} s")
+
+    @property
+    def start_t_s(self) -> float:
+        return self.t0_s + self.from_s
+
+    @property
+    def end_t_s(self) -> float:
+        return self.t0_s + self.until_s
+
+    def covers(self, t_s: float) -> bool:
+        return self.start_t_s <= t_s < self.end_t_s
 
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
@@ -95,6 +128,15 @@ class RunLog:
     finetune_cpu_ms: list[float] = field(default_factory=list)  # CPU time the worker used for it
     scale_checks: list[ScaleCheck] = field(default_factory=list)  # the barometer's checks between registrations
     takeover_t_s: float | None = None
+    denial: "GnssDenial | None" = None  # replay: GNSS withheld from the pipeline over this span
+    reference: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)  # seq → withheld GNSS (ECEF, h_acc 1-σ)
+
+
+def reference_errors(run: RunLog) -> FixErrors:
+    """Errors of the fixes a replay sent while GNSS was withheld, against the withheld GNSS."""
+    fixes = [r.fix for r in run.records if r.fix is not None and r.seq in run.reference]
+    return fix_errors(fixes, np.array([run.reference[f.seq][0] for f in fixes]).reshape(-1, 3),
+                      np.array([run.reference[f.seq][1] for f in fixes]))
 
 
 def summarize(run: RunLog, *, name: str) -> dict:
@@ -105,6 +147,16 @@ def summarize(run: RunLog, *, name: str) -> dict:
     errs_after = fix_errors(after, np.array([run.truth_ecef_m[f.seq] for f in after]).reshape(-1, 3))
     n = len(run.records)
     frames_after = [r for r in run.records if run.takeover_t_s is not None and r.t_s >= run.takeover_t_s]
+    denial = {}
+    if run.denial is not None:
+        in_denial = [r for r in run.records if r.t_s >= run.denial.start_t_s and r.t_s < run.denial.end_t_s]
+        denial = {
+            "gnss_denial": {"from_s": run.denial.from_s,
+                            "until_s": run.denial.until_s if math.isfinite(run.denial.until_s) else None,
+                            "frames": len(in_denial),
+                            "fix_ratio": float(np.mean([r.fix is not None for r in in_denial])) if in_denial else None},
+            "against_withheld_gnss": reference_errors(run).summary(),
+        }
     return {
         "name": name,
         "frames": n,
@@ -124,6 +176,7 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "tracking_events": tracking_events(run.records),
         "switch_events": run.switch_events,
         "alignment_events": run.alignment_events,
+        **denial,
     }
 
 
@@ -158,25 +211,28 @@ def write_outputs(run: RunLog, summary: dict, out_dir: Path, origin, title: str)
     write_geojson(fixes, out_dir / "trajectory.geojson", {"run": title})
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title=title)
     written = [out_dir / n for n in ("trajectory.csv", "trajectory.tum", "trajectory.geojson", "report.json", "report.md")]
-    if fixes and run.truth_ecef_m:
-        ours = origin.ecef_to_enu(np.stack([f.p_ecef_m for f in fixes]))
-        seqs = sorted(run.truth_ecef_m)
-        truth = origin.ecef_to_enu(np.stack([run.truth_ecef_m[s] for s in seqs]))
-        tracks = {"truth": truth[:, :2], "ours": ours[:, :2]}
-        if run.gnss_ecef_m:
-            g = np.stack([p for _, p, ok in run.gnss_ecef_m if ok]) if any(ok for *_, ok in run.gnss_ecef_m) else None
-            if g is not None:
-                tracks["GNSS"] = origin.ecef_to_enu(g)[:, :2]
+    if fixes and (run.truth_ecef_m or run.reference):
+        # judged against the truth where there is one, else against the GNSS a replay withheld
+        tracks = {}
+        if run.truth_ecef_m:
+            seqs = sorted(run.truth_ecef_m)
+            tracks["truth"] = origin.ecef_to_enu(np.stack([run.truth_ecef_m[s] for s in seqs]))[:, :2]
+        tracks["ours"] = origin.ecef_to_enu(np.stack([f.p_ecef_m for f in fixes]))[:, :2]
+        if any(ok for *_, ok in run.gnss_ecef_m):
+            tracks["GNSS"] = origin.ecef_to_enu(np.stack([p for _, p, ok in run.gnss_ecef_m if ok]))[:, :2]
         viz.plot_track(out_dir / "track.png", tracks)
-        with_truth = [f for f in fixes if f.seq in run.truth_ecef_m]
-        e = fix_errors(with_truth, np.stack([run.truth_ecef_m[f.seq] for f in with_truth]))
+        if run.truth_ecef_m:
+            with_truth = [f for f in fixes if f.seq in run.truth_ecef_m]
+            e, against = fix_errors(with_truth, np.stack([run.truth_ecef_m[f.seq] for f in with_truth])), ""
+        else:
+            e, against = reference_errors(run), " vs withheld GNSS"
         events = run.switch_events + [(t, s) for t, s in run.alignment_events if "accepted (initial" not in s][:12]
-        series = {"ours (horizontal)": (e.t_s, e.err_h_m), "ours 3σ (3 × h_acc)": (e.t_s, 3 * e.h_acc_m)}
+        series = {f"ours (horizontal{against})": (e.t_s, e.err_h_m), "ours 3σ (3 × h_acc)": (e.t_s, 3 * e.h_acc_m)}
         if run.autopilot_err_m:
             series["autopilot EKF (horizontal)"] = (np.array([t for t, _, _ in run.autopilot_err_m]),
                                                     np.array([x for _, x, _ in run.autopilot_err_m]))
         viz.plot_error_over_time(out_dir / "error_over_time.png", series, events=events)
-        viz.plot_error_cdf(out_dir / "error_cdf.png", {"ours (3D)": e.err_3d_m, "ours (horizontal)": e.err_h_m})
+        viz.plot_error_cdf(out_dir / "error_cdf.png", {f"ours (3D{against})": e.err_3d_m, f"ours (horizontal{against})": e.err_h_m})
         written += [out_dir / "track.png", out_dir / "error_over_time.png", out_dir / "error_cdf.png"]
     if run.wall_track_ms:
         viz.plot_latency_hist(out_dir / "latency.png", {"tracking (ms)": np.array(run.wall_track_ms)})
@@ -363,19 +419,26 @@ def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
 
 
 def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
-               progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False) -> dict:
+               progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
+               deny: GnssDenial | None = None) -> dict:
     """Offline replay of a dataset: GNSS judged by the same monitor as live, no autopilot.
-    ``repeatable``: as in fly_sim."""
+    ``repeatable``: as in fly_sim. ``deny``: GNSS withheld over a span (GnssDenial), and the
+    fixes sent meanwhile judged against it (summary ``against_withheld_gnss``)."""
     from companion.dataset import read_dataset
 
     ds = read_dataset(dataset_dir)
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir} lists no GIS model file (site.yaml gis)")
+    n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)
+    if deny is not None:
+        deny = replace(deny, t0_s=float(ds.frame_t_s[0]))
+        last_s = float(ds.frame_t_s[n - 1] - ds.frame_t_s[0])
+        if deny.from_s >= last_s:
+            raise ValueError(f"GNSS denial from {deny.from_s:g} s: the replayed frames end {last_s:.1f} s after the first")
     model = _load_first_model(ds.gis_files, cfg)
     localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model, repeatable=repeatable)
     monitor = GnssMonitor(cfg.switching)
-    run = RunLog()
-    n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)
+    run = RunLog(denial=deny)
     lost_since: float | None = None
     last_att = None
     try:
@@ -383,16 +446,17 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             if k >= n:
                 break
             for s in step.gnss:
-                monitor.on_sample(s)
                 run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+                monitor.on_sample(no_fix_sample(s.t_s) if deny is not None and deny.covers(s.t_s) else s)
             status = monitor.status(step.frame.t_s)
             good = status.quality is GnssQuality.GOOD
             if not good and lost_since is None:
                 lost_since = step.frame.t_s
                 run.takeover_t_s = run.takeover_t_s or step.frame.t_s
                 run.switch_events.append((step.frame.t_s, f"GNSS {status.quality.value}: {'; '.join(status.reasons)}"))
-            elif good:
+            elif good and lost_since is not None:
                 lost_since = None
+                run.switch_events.append((step.frame.t_s, "GNSS good again"))
             localizer.settle(step.frame.t_s)
             t0 = time.perf_counter()
             # the newest attitude up to 0.1 s old, as the service asks the bridge for it: a camera
@@ -418,6 +482,12 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
         run.finetune_cpu_ms = list(localizer.worker.cpu_ms) if localizer.worker else []
     finally:
         localizer.close()
+    if deny is not None:
+        ref = GnssReference.from_samples(ds.gnss)  # the whole track: a fix just before the end lies between two solutions
+        for r in run.records:
+            at = ref.at(r.fix.t_s) if r.fix is not None and deny.covers(r.fix.t_s) else None
+            if at is not None:
+                run.reference[r.seq] = at
     summary = summarize(run, name=f"replay {ds.name}")
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, ds.origin, f"TerraSLAM replay of {ds.name}")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title=f"TerraSLAM replay of {ds.name}")

@@ -1,6 +1,7 @@
 """`terraslam run|demo|replay` — the service, the built-in demo, offline replay (issue 7)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -47,6 +48,17 @@ def _print_summary(summary: dict, out: Path) -> None:
         he = summary[key]["horizontal_error_m"]
         t.add_row(f"horizontal error, {label} (mean / P99)", f"{fmt(he['mean'])} / {fmt(he['p99'])} m")
         t.add_row(f"integrity violations, {label}", fmt(summary[key]["integrity_violation_ratio"]))
+    ref = summary.get("against_withheld_gnss")
+    if ref is not None:
+        den = summary["gnss_denial"]
+        t.add_row("simulated GNSS denial (s after the first frame)",
+                  f"{fmt(den['from_s'])} – {'end' if den['until_s'] is None else fmt(den['until_s'])}, fix ratio {fmt(den['fix_ratio'])}")
+        ge, he = ref["global_error_m"], ref["horizontal_error_m"]
+        t.add_row("3D error vs withheld GNSS (mean / P99)", f"{fmt(ge['mean'])} / {fmt(ge['p99'])} m  (n={ref['n']})")
+        t.add_row("horizontal error vs withheld GNSS (mean / P99)", f"{fmt(he['mean'])} / {fmt(he['p99'])} m")
+        if ref["n"]:
+            t.add_row("  the receiver's own h_acc there (median)", fmt(ref["reference_h_acc_m"]["p50"], " m"))
+        t.add_row("integrity violations vs withheld GNSS (3 × both σ)", fmt(ref["integrity_violation_ratio"]))
     ap = summary.get("autopilot_horizontal_error_m_after_takeover")
     if ap and ap["mean"] is not None:
         t.add_row("autopilot EKF horizontal error after takeover (mean / P99)", f"{fmt(ap['mean'])} / {fmt(ap['p99'])} m")
@@ -121,12 +133,21 @@ def replay(
     out: Path = typer.Option(..., "--out", "-o", help="output folder"),
     frames: Optional[int] = typer.Option(None, "--frames", min=1, help="replay only the first N frames"),
     repeatable: bool = typer.Option(False, "--repeatable", help="local mapping and fine-tuning keep step with the recorded clock: the same replay gives the same fixes to the bit (as `bench --repeatable`)"),
+    deny_from: Optional[float] = typer.Option(None, "--deny-gnss-from", help="simulated GNSS denial: from this many seconds after the first frame, GNSS reaches the pipeline as 'no fix'; the fixes sent meanwhile are judged against the withheld GNSS (a recorded flight's yardstick)"),
+    deny_until: Optional[float] = typer.Option(None, "--deny-gnss-until", help="end of the simulated denial, seconds after the first frame (default: to the end)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
-    """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth exists)."""
-    from companion.app import run_replay
+    """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth
+    exists, and against the withheld GNSS under --deny-gnss-from)."""
+    from companion.app import GnssDenial, run_replay
     from companion.dataset import DatasetError
 
+    if deny_until is not None and deny_from is None:
+        fail("--deny-gnss-until needs --deny-gnss-from")
+    try:
+        deny = None if deny_from is None else GnssDenial(deny_from, math.inf if deny_until is None else deny_until)
+    except ValueError as e:
+        fail(str(e))
     cfg = _load(config)
     try:
         with _progress_bar("replay") as bar:
@@ -135,7 +156,7 @@ def replay(
             def progress(k, n, state):
                 bar.update(task, completed=k, total=n)
 
-            summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable)
+            summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable, deny=deny)
     except (DatasetError, ValueError, FileNotFoundError) as e:
         fail(str(e))
     _print_summary(summary, out)

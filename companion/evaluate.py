@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic
+from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.types import GlobalFix
 
 
@@ -29,11 +29,13 @@ def stats(x: np.ndarray) -> dict[str, float | None]:
 
 @dataclass(frozen=True)
 class FixErrors:
-    """Errors of the fixes that had truth. t_s: (N,); err_ned_m: (N, 3); h_acc_m: (N,) reported."""
+    """Errors of the fixes that had a reference. t_s: (N,); err_ned_m: (N, 3); h_acc_m: (N,)
+    reported. ref_h_acc_m: (N,) 1-σ horizontal accuracy of the reference itself (None: truth)."""
 
     t_s: np.ndarray
     err_ned_m: np.ndarray
     h_acc_m: np.ndarray
+    ref_h_acc_m: np.ndarray | None = None
 
     @property
     def err_3d_m(self) -> np.ndarray:
@@ -48,25 +50,79 @@ class FixErrors:
         return np.abs(self.err_ned_m[:, 2])
 
     def integrity_violation_ratio(self) -> float | None:
-        """Fraction of fixes whose true horizontal error exceeds 3 × their reported 1-σ h_acc."""
+        """Fraction of fixes whose horizontal error exceeds 3 × their reported 1-σ h_acc; against
+        a reference with its own error (a receiver), 3 × the two 1-σ added in quadrature (the
+        difference of two independent errors)."""
         if len(self.t_s) == 0:
             return None
-        return float(np.mean(self.err_h_m > 3.0 * self.h_acc_m))
+        sigma = self.h_acc_m if self.ref_h_acc_m is None else np.hypot(self.h_acc_m, self.ref_h_acc_m)
+        return float(np.mean(self.err_h_m > 3.0 * sigma))
 
     def summary(self) -> dict:
-        return {
+        out = {
             "n": int(len(self.t_s)),
             "global_error_m": stats(self.err_3d_m),
             "horizontal_error_m": stats(self.err_h_m),
             "vertical_error_m": stats(self.err_v_m),
             "integrity_violation_ratio": self.integrity_violation_ratio(),
         }
+        if self.ref_h_acc_m is not None:
+            out["reference_h_acc_m"] = stats(self.ref_h_acc_m)
+        return out
 
 
-def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray) -> FixErrors:
-    """Errors of ``fixes`` against truth positions (N, 3) ECEF given in the same order."""
+#: A withheld GNSS track stands for the vehicle's position at a fix only between two of its 3D
+#: solutions at most this far apart (1 Hz receivers included): over 1 s at 15 m/s, a turn of
+#: 30 °/s bends the path ~0.2 m off the chord, within a DGPS solution's own error.
+REFERENCE_MAX_GAP_S = 1.0
+
+
+@dataclass(frozen=True)
+class GnssReference:
+    """The receiver's 3D solutions that a replay withheld from the pipeline (simulated denial): what
+    a flight without truth.csv is judged against. Only as good as the receiver (its h_acc_m, RTK:
+    centimetres, DGPS/SBAS: about a metre), and it is the antenna's position, which the fixes'
+    body origin is taken to be (DATASET.md: the lever arm is not applied).
+    t_s: (N,) increasing; p_ecef_m: (N, 3); h_acc_m: (N,) 1-σ."""
+
+    t_s: np.ndarray
+    p_ecef_m: np.ndarray
+    h_acc_m: np.ndarray
+
+    @classmethod
+    def from_samples(cls, samples) -> "GnssReference":
+        """From GnssSample-like values; solutions without a 3D fix are left out."""
+        good = [s for s in samples if s.fix_type >= 3]
+        if not good:
+            return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0))
+        p = geodetic_to_ecef(np.array([s.lat_deg for s in good]), np.array([s.lon_deg for s in good]),
+                             np.array([s.h_ellipsoid_m for s in good]))
+        return cls(np.array([s.t_s for s in good], float), np.asarray(p, float).reshape(-1, 3),
+                   np.array([s.h_acc_m for s in good], float))
+
+    def at(self, t_s: float) -> tuple[np.ndarray, float] | None:
+        """(ECEF position, 1-σ h_acc) at t_s, linear between the two solutions around it (the
+        larger of their h_acc); None outside the track or across a gap over REFERENCE_MAX_GAP_S."""
+        i = int(np.searchsorted(self.t_s, t_s, side="right"))  # the first solution after t_s
+        if i == 0:
+            return None
+        if self.t_s[i - 1] == t_s:
+            return self.p_ecef_m[i - 1].copy(), float(self.h_acc_m[i - 1])
+        if i == len(self.t_s):
+            return None
+        t0, t1 = self.t_s[i - 1], self.t_s[i]
+        if t1 - t0 > REFERENCE_MAX_GAP_S:
+            return None
+        w = (t_s - t0) / (t1 - t0)
+        return (1 - w) * self.p_ecef_m[i - 1] + w * self.p_ecef_m[i], float(max(self.h_acc_m[i - 1], self.h_acc_m[i]))
+
+
+def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray, ref_h_acc_m: np.ndarray | None = None) -> FixErrors:
+    """Errors of ``fixes`` against reference positions (N, 3) ECEF given in the same order: the
+    truth, or a receiver's positions with their 1-σ ``ref_h_acc_m`` (N,)."""
+    ref = None if ref_h_acc_m is None else np.asarray(ref_h_acc_m, float).reshape(-1)
     if not fixes:
-        return FixErrors(np.zeros(0), np.zeros((0, 3)), np.zeros(0))
+        return FixErrors(np.zeros(0), np.zeros((0, 3)), np.zeros(0), None if ref is None else np.zeros(0))
     p = np.stack([f.p_ecef_m for f in fixes])
     truth = np.asarray(truth_ecef_m, float).reshape(-1, 3)
     lat, lon, _ = ecef_to_geodetic(truth)
@@ -75,7 +131,7 @@ def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray) -> FixErrors:
         R = R_ecef_enu(float(lat[i]), float(lon[i]))
         e_enu = (p[i] - truth[i]) @ R
         err_ned[i] = (e_enu[1], e_enu[0], -e_enu[2])
-    return FixErrors(np.array([f.t_s for f in fixes]), err_ned, np.array([f.h_acc_m for f in fixes]))
+    return FixErrors(np.array([f.t_s for f in fixes]), err_ned, np.array([f.h_acc_m for f in fixes]), ref)
 
 
 FIX_COLUMNS = ("t_s", "lat_deg", "lon_deg", "h_ellipsoid_m", "h_msl_m", "h_acc_m", "v_acc_m", "source")

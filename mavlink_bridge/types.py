@@ -45,6 +45,12 @@ class GnssSample:
     cog_deg: float | None = None
 
 
+def no_fix_sample(t_s: float, satellites: int = 0) -> GnssSample:
+    """A receiver report without a position (GPS_RAW_INT during a dropout or jamming): fix_type
+    NO_FIX, lat/lon/heights 0 (as gnss.csv writes them), HDOP/VDOP 99.99 and accuracies 100 m."""
+    return GnssSample(float(t_s), GpsFixType.NO_FIX, 0.0, 0.0, 0.0, 0.0, 99.99, 99.99, 100.0, 100.0, int(satellites))
+
+
 class GnssQuality(enum.Enum):
     GOOD = "good"            # trusted: we stand by
     DEGRADED = "degraded"    # usable but poor (few satellites, large eph)

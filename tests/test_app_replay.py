@@ -54,3 +54,96 @@ def test_replay_gives_each_frame_the_newest_attitude_up_to_0_1_s_old(tmp_path, m
             assert inp.prior is not None and inp.prior.t_s == newest
             with_own_sample += t - newest < 1 / 30
     assert 0 < with_own_sample < 25  # some frames had no sample since the previous one, and got a prior
+
+
+def test_a_replay_with_gnss_denied_is_judged_against_the_withheld_gnss(tmp_path):
+    """A flight without truth (what the recorder writes) replayed with GNSS denied from 13 s to
+    17 s: the monitor sees 'no fix' from 13 s, the pipeline takes over, GNSS comes back at 17 s, and
+    the fixes sent meanwhile are judged against the receiver's withheld solutions. Checked against
+    an independent interpolation of gnss.csv in geodetic coordinates."""
+    import numpy as np
+
+    from companion.app import GnssDenial
+    from gis.geodesy import LocalFrame
+
+    ds = tmp_path / "ds"
+    write_dataset(make_scenario("nominal", seed=0, n_frames=200, fps=10), ds, progress=False)
+    (ds / "truth.csv").unlink()  # a recorded flight has none
+    summary = run_replay(load_config(environ={}), ds, tmp_path / "out", deny=GnssDenial(13.0, 17.0))
+
+    t_frames = [float(r["t_s"]) for r in csv.DictReader(open(ds / "images" / "frames.csv"))]
+    t0 = t_frames[0]
+    denied = [t for t in t_frames if t0 + 13.0 <= t < t0 + 17.0]
+    assert summary["takeover_t_s"] == denied[0]
+    events = [text for _, text in summary["switch_events"]]
+    assert events[0] == "GNSS lost: no 3D fix (fix_type 1)" and events[-1] == "GNSS good again"
+    assert summary["gnss_denial"]["frames"] == len(denied) == 40
+    assert summary["after_takeover"]["n"] == 0, "no truth: nothing is judged against it"
+
+    fixes = list(csv.DictReader(open(tmp_path / "out" / "trajectory.csv")))
+    during = [f for f in fixes if t0 + 13.0 <= float(f["t_s"]) < t0 + 17.0]
+    assert summary["gnss_denial"]["fix_ratio"] == len(during) / len(denied) > 0.8
+    gnss = [g for g in csv.DictReader(open(ds / "gnss.csv")) if int(g["fix_type"]) >= 3]
+    tg = np.array([float(g["t_s"]) for g in gnss])
+    frame = LocalFrame(float(gnss[0]["lat_deg"]), float(gnss[0]["lon_deg"]), 0.0)
+    err_h, viol = [], 0
+    for f in during:
+        t = float(f["t_s"])
+        ref = [np.interp(t, tg, [float(g[k]) for g in gnss]) for k in ("lat_deg", "lon_deg", "h_ellipsoid_m")]
+        i = int(np.searchsorted(tg, t, side="right"))
+        ref_h_acc = max(float(gnss[j]["h_acc_m"]) for j in ((i - 1,) if tg[i - 1] == t else (i - 1, i)))
+        d = frame.geodetic_to_enu(float(f["lat_deg"]), float(f["lon_deg"]), float(f["h_ellipsoid_m"])) - frame.geodetic_to_enu(*ref)
+        err_h.append(float(np.hypot(d[0], d[1])))
+        viol += err_h[-1] > 3 * np.hypot(float(f["h_acc_m"]), ref_h_acc)
+    ref = summary["against_withheld_gnss"]
+    assert ref["n"] == len(during)
+    assert abs(ref["horizontal_error_m"]["mean"] - np.mean(err_h)) < 0.01
+    assert ref["integrity_violation_ratio"] == viol / len(during)
+    assert ref["reference_h_acc_m"]["p50"] > 0
+    assert (tmp_path / "out" / "error_over_time.png").stat().st_size > 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["gnss_denial"] == {"from_s": 13.0, "until_s": 17.0, "frames": 40, "fix_ratio": summary["gnss_denial"]["fix_ratio"]}
+
+
+def test_replay_refuses_a_denial_it_cannot_run(tmp_path):
+    import pytest
+    from typer.testing import CliRunner
+
+    from companion.app import GnssDenial
+    from companion.cli import _register_subcommands, app
+
+    with pytest.raises(ValueError, match="must come after its start"):
+        GnssDenial(20.0, 10.0)
+    with pytest.raises(ValueError, match="≥ 0 s"):
+        GnssDenial(-1.0)
+    _register_subcommands()
+    runner = CliRunner()
+    r = runner.invoke(app, ["replay", str(tmp_path), "--out", str(tmp_path / "o"), "--deny-gnss-until", "5"])
+    assert r.exit_code == 2 and "needs --deny-gnss-from" in r.output
+    r = runner.invoke(app, ["replay", str(tmp_path), "--out", str(tmp_path / "o"), "--deny-gnss-from", "5", "--deny-gnss-until", "5"])
+    assert r.exit_code == 2 and "must come after its start" in r.output
+    ds = tmp_path / "ds"
+    write_dataset(make_scenario("nominal", seed=3, n_frames=20), ds, progress=False)
+    r = runner.invoke(app, ["replay", str(ds), "--out", str(tmp_path / "o"), "--deny-gnss-from", "60"])
+    assert r.exit_code == 2 and "frames end" in r.output
+
+
+def test_the_gnss_reference_interpolates_only_between_close_3d_solutions():
+    import numpy as np
+
+    from companion.evaluate import REFERENCE_MAX_GAP_S, GnssReference
+    from mavlink_bridge.types import GnssSample, GpsFixType, no_fix_sample
+
+    def sol(t, lat, h_acc=0.5):
+        return GnssSample(t, GpsFixType.DGPS, lat, 8.0, 400.0, 450.0, 0.8, 1.1, h_acc, 0.8, 12)
+
+    gap = REFERENCE_MAX_GAP_S + 0.5
+    ref = GnssReference.from_samples([sol(0.0, 47.0), no_fix_sample(0.1), sol(0.2, 47.00001, 0.7),
+                                      sol(0.2 + gap, 47.00002)])
+    assert len(ref.t_s) == 3, "a no-fix report is no reference"
+    p, acc = ref.at(0.1)
+    a, b = ref.at(0.0)[0], ref.at(0.2)[0]
+    assert np.allclose(p, (a + b) / 2, atol=1e-6) and acc == 0.7 and np.linalg.norm(b - a) > 1.0
+    assert ref.at(0.2)[1] == 0.7
+    assert ref.at(-0.1) is None and ref.at(0.2 + gap + 0.1) is None
+    assert ref.at(0.3) is None, "across a gap longer than REFERENCE_MAX_GAP_S"

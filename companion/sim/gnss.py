@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gis.geodesy import LocalFrame, ellipsoid_to_msl
-from mavlink_bridge.types import GnssSample, GpsFixType
+from mavlink_bridge.types import GnssSample, GpsFixType, no_fix_sample
 
 BASE_MODES = ("standalone", "dgps", "urban")
 EVENT_MODES = ("dropout", "jamming", "spoof_drift", "spoof_jump", "standalone", "dgps", "urban")
@@ -171,8 +171,7 @@ def simulate_gnss(spec: GnssSpec, origin: LocalFrame, t_s: np.ndarray, p_enu: np
     out = []
     for i in range(n):
         if lost[i]:
-            out.append(GnssSample(float(t_s[i]), GpsFixType.NO_FIX, 0.0, 0.0, 0.0, 0.0, 99.99, 99.99, 100.0, 100.0,
-                                  int(min(sats[i], 3)), None, None))
+            out.append(no_fix_sample(t_s[i], min(sats[i], 3)))
             continue
         vn, ve, vd = float(vel[i, 1]), float(vel[i, 0]), float(-vel[i, 2])
         out.append(GnssSample(
