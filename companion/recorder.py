@@ -12,6 +12,8 @@ recorder keeps what the hot path gave the pipeline, on the clock it used (the co
       gnss.csv                                           every GNSS solution the bridge received
       attitude.csv                                       every ATTITUDE (+ barometer) the bridge received
       fixes.csv                                          what we computed per frame (not a replay input)
+      mavlink.tlog                                       every MAVLink message received from and sent to the
+                                                         autopilot (telemetry log: MAVExplorer, Mission Planner, QGC)
 
 * The hot path only queues (``on_frame``); a writer thread encodes and writes. When the writer
   falls behind (slow SD card), frames are dropped from the recording, never delayed in the
@@ -25,6 +27,13 @@ recorder keeps what the hot path gave the pipeline, on the clock it used (the co
 
 Samples whose time goes back (an autopilot's boot-time mapping that moved) are written at the
 previous sample's time, as the dataset format needs, and counted.
+
+``mavlink.tlog`` is the ground stations' telemetry log format (MAVProxy, Mission Planner and
+QGroundControl write it, pymavlink and MAVExplorer read it): per message, its UNIX time in
+microseconds as a big-endian uint64, then the message's wire bytes. It holds what the autopilot
+made of our fixes (EKF status, its own position, STATUSTEXT) beside what we sent it; pymavlink's
+own ``setup_logfile`` logs only received messages, hence the tap on both directions (Link).
+``dataset.yaml`` gives ``unix_time_minus_clock_s`` to put it on the dataset's clock.
 """
 from __future__ import annotations
 
@@ -34,6 +43,7 @@ import math
 import os
 import queue
 import shutil
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -69,6 +79,7 @@ class RecordingStats:
     gnss: int = 0
     attitude: int = 0
     samples_retimed: int = 0         # written at the previous sample's time (their time went back)
+    mavlink_messages: int = 0        # in mavlink.tlog
     stopped: str | None = None       # why the recording stopped before the service did
 
 
@@ -130,7 +141,9 @@ class FlightRecorder:
         self._params = [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality] if cfg.image_format == "jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
         self._frames: queue.Queue[_FrameItem | None] = queue.Queue(maxsize=cfg.queue_frames)
         self._samples: list[GnssSample | object] = []
-        self._lock = threading.Lock()        # _samples, stats
+        self._mavlink: list[tuple[float, bytes]] = []   # (UNIX time s, wire bytes)
+        self._lock = threading.Lock()        # _samples, _mavlink, stats
+        self._unix_minus_clock_s = time.time() - time.monotonic()
         self._first_fix: GnssSample | None = None
         self._started_utc = datetime.now(timezone.utc)
         self._last_drop_log_s = -math.inf
@@ -139,7 +152,8 @@ class FlightRecorder:
         self._csv_gnss = _Csv.open(out / "gnss.csv", GNSS_COLUMNS)
         self._csv_att = _Csv.open(out / "attitude.csv", ATTITUDE_COLUMNS)
         self._csv_fix = _Csv.open(out / "fixes.csv", ("seq",) + FIX_COLUMNS)
-        self._csvs = (self._csv_frames, self._csv_gnss, self._csv_att, self._csv_fix)
+        self._tlog = (out / "mavlink.tlog").open("wb")
+        self._files = (self._csv_frames.f, self._csv_gnss.f, self._csv_att.f, self._csv_fix.f, self._tlog)
         self._thread = threading.Thread(target=self._run, name="flight-recorder", daemon=True)
 
     # ---- any thread ----------------------------------------------------------------------
@@ -172,6 +186,13 @@ class FlightRecorder:
             with self._lock:
                 self._samples.append(attitude)
 
+    def on_mavlink(self, buf: bytes) -> None:
+        """The wire bytes of a MAVLink message received or sent (Link's tap: the receive thread,
+        or whichever thread sent it)."""
+        if self.stats.stopped is None:
+            with self._lock:  # stamped under the lock: the log's times never go back between threads
+                self._mavlink.append((time.time(), bytes(buf)))
+
     # ---- lifecycle -----------------------------------------------------------------------
     def start(self) -> "FlightRecorder":
         self._write_meta(final=False)
@@ -185,17 +206,18 @@ class FlightRecorder:
             self._frames.put(None)
             self._thread.join()
         try:
-            for c in self._csvs:
-                if not c.f.closed:
-                    c.f.flush()
-                    os.fsync(c.f.fileno())
-                    c.f.close()
+            for f in self._files:
+                if not f.closed:
+                    f.flush()
+                    os.fsync(f.fileno())
+                    f.close()
             self._write_meta(final=True)
         except OSError as e:  # the disk went away: what was written stays readable up to its last fsync
             log.error("flight recorder: closing %s failed: %s", self.out, e)
         s = self.stats
         log_event(log, "recording_closed", f"recording {self.out}: {s.frames} frames ({s.frames_dropped} dropped), "
-                  f"{s.gnss} GNSS, {s.attitude} attitude samples" + (f"; stopped early: {s.stopped}" if s.stopped else ""),
+                  f"{s.gnss} GNSS, {s.attitude} attitude samples, {s.mavlink_messages} MAVLink messages"
+                  + (f"; stopped early: {s.stopped}" if s.stopped else ""),
                   path=str(self.out), frames=s.frames, frames_dropped=s.frames_dropped)
         return s
 
@@ -217,8 +239,8 @@ class FlightRecorder:
                     self._check_disk()
                 if now - last_sync >= FSYNC_EVERY_S:
                     last_sync = now
-                    for c in self._csvs:
-                        os.fsync(c.f.fileno())
+                    for f in self._files:
+                        os.fsync(f.fileno())
             except OSError as e:  # ENOSPC, EIO, a pulled USB stick: the recording ends, the service goes on
                 self._stop(f"write failed: {e}")
             except Exception as e:  # noqa: BLE001 — e.g. cv2.error on an image it cannot encode: the same
@@ -232,6 +254,11 @@ class FlightRecorder:
             return
         with self._lock:
             batch, self._samples = self._samples, []
+            tlog, self._mavlink = self._mavlink, []
+        if tlog:
+            self._tlog.write(b"".join(struct.pack(">Q", int(t * 1e6)) + buf for t, buf in tlog))
+            self._tlog.flush()
+            self.stats.mavlink_messages += len(tlog)
         for s in batch:
             is_gnss = isinstance(s, GnssSample)
             c = self._csv_gnss if is_gnss else self._csv_att
@@ -306,6 +333,8 @@ class FlightRecorder:
                 "complete": final and s.stopped is None,
                 "frames_dropped": s.frames_dropped, "gnss_samples": s.gnss, "attitude_samples": s.attitude,
                 "samples_retimed": s.samples_retimed, "stopped": s.stopped, "image_format": self.cfg.image_format,
+                "mavlink_tlog": "mavlink.tlog", "mavlink_messages": s.mavlink_messages,
+                "unix_time_minus_clock_s": round(self._unix_minus_clock_s, 6),
             },
         })
 

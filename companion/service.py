@@ -106,7 +106,8 @@ def run_service(cfg: AppConfig) -> int:
              if cfg.persistence.enabled else None)
     recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id)
     bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=recorder.on_gnss if recorder else None,
-                    on_attitude=recorder.on_attitude if recorder else None).start()
+                    on_attitude=recorder.on_attitude if recorder else None,
+                    on_mavlink=recorder.on_mavlink if recorder else None).start()
     latency = LatencyTracker()
     saved = {"t": None, "alignment": localizer.alignment}
 

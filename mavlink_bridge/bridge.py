@@ -62,12 +62,15 @@ def _q_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
 class Bridge:
     def __init__(self, mav_cfg: MavlinkConfig, sw_cfg: SwitchingConfig, clock=time.monotonic,
                  on_gnss: Callable[[GnssSample], None] | None = None,
-                 on_attitude: Callable[[VehicleAttitude], None] | None = None):
+                 on_attitude: Callable[[VehicleAttitude], None] | None = None,
+                 on_mavlink: Callable[[bytes], None] | None = None):
         """``on_gnss`` / ``on_attitude``: called on the receive thread with every GNSS solution and
-        attitude received from the autopilot (the flight recorder); they must not block."""
+        attitude received from the autopilot; ``on_mavlink``: with the wire bytes of every message
+        received and sent (Link's tap; the sending thread's). For the flight recorder; they must
+        not block or raise."""
         emitters.check_profile(mav_cfg)
         self.cfg, self.sw_cfg, self.clock = mav_cfg, sw_cfg, clock
-        self._on_gnss, self._on_attitude = on_gnss, on_attitude
+        self._on_gnss, self._on_attitude, self._on_mavlink = on_gnss, on_attitude, on_mavlink
         self._key = load_signing_key(mav_cfg.signing_key_file) if mav_cfg.signing_key_file else None
         self.monitor = GnssMonitor(sw_cfg, mav_cfg.uere_m)
         self.policy = SwitchPolicy(sw_cfg)
@@ -101,7 +104,7 @@ class Bridge:
     def start(self) -> "Bridge":
         c = self.cfg
         self._link = Link(c.connect, c.baud, c.source_system, c.source_component, self._key,
-                          c.allow_unsigned, c.reconnect_max_s)
+                          c.allow_unsigned, c.reconnect_max_s, tap=self._on_mavlink)
         self._thread = threading.Thread(target=self._run, name="mavlink-bridge", daemon=True)
         self._thread.start()
         return self

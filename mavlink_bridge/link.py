@@ -9,6 +9,7 @@ import stat
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 os.environ.setdefault("MAVLINK20", "1")  # must precede the pymavlink import: MAVLink 2 framing
 
@@ -72,8 +73,12 @@ class Link:
     reconnect-on-error (serial unplugged, TCP peer gone) with back-off up to ``reconnect_max_s``."""
 
     def __init__(self, url: str, baud: int, source_system: int, source_component: int,
-                 signing_key: bytes | None = None, allow_unsigned: bool = False, reconnect_max_s: float = 8.0):
+                 signing_key: bytes | None = None, allow_unsigned: bool = False, reconnect_max_s: float = 8.0,
+                 tap: Callable[[bytes], None] | None = None):
+        """``tap``: called with the wire bytes of every message sent and every valid message
+        received (the flight recorder's telemetry log); it must not block or raise."""
         self._args = (url, baud, source_system, source_component, signing_key, allow_unsigned)
+        self._tap = tap
         self._send_lock = threading.Lock()
         self._reconnect_max_s = reconnect_max_s
         self._backoff_s = 0.25
@@ -116,10 +121,12 @@ class Link:
                 return False
             try:
                 self.conn.mav.send(msg)
-                return True
             except OSError as e:
                 self._drop(e)
                 return False
+        if self._tap is not None:
+            self._tap(msg.get_msgbuf())
+        return True
 
     def recv(self, timeout_s: float):
         """Next valid message or None (timeout, garbage, bad signature, link down)."""
@@ -145,6 +152,8 @@ class Link:
         if msg.get_type() == "BAD_DATA":
             self.rejected += 1
             return None
+        if self._tap is not None:
+            self._tap(msg.get_msgbuf())
         return msg
 
     def close(self) -> None:

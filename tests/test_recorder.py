@@ -119,3 +119,34 @@ def test_no_recording_is_started_on_a_disk_under_min_free(tmp_path: Path) -> Non
         open_recording(tmp_path / "rec", RecordingConfig(min_free_mb=1e12), ds_cam.camera, ds_cam.T_body_cam, 10.0,
                        ds_cam.origin, [])
     assert not any((tmp_path / "rec").glob("flight-*"))
+
+
+def test_mavlink_traffic_is_kept_as_a_tlog_that_pymavlink_reads(tmp_path: Path) -> None:
+    """Every message the bridge's link taps (received and sent) lands in mavlink.tlog, the ground
+    stations' format: pymavlink's log reader gives them back with their wall-clock times. The
+    service's own tlog, over real UDP, is checked in test_service_e2e.py."""
+    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
+    from pymavlink import mavutil
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    autopilot, us = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    sent = [autopilot.heartbeat_encode(2, 3, 0, 0, 4).pack(autopilot),
+            us.gps_input_encode(123456, 0, 0, 0, 0, 3, 473_769_000, 85_417_000, 541.0, 0.8, 1.1, 0, 0, 0, 0.3, 0.6, 0.8, 12).pack(us),
+            autopilot.ekf_status_report_encode(0x1FF, 0.1, 0.2, 0.1, 0.0, 0.0).pack(autopilot)]
+    cam = make_scenario("nominal", n_frames=1)
+    rec = open_recording(tmp_path / "rec", RecordingConfig(), cam.camera, cam.T_body_cam, 10.0, cam.origin, [])
+    t0 = time.time()
+    for buf in sent:
+        rec.on_mavlink(buf)
+    t1 = time.time()
+    stats = rec.close()
+    assert stats.mavlink_messages == 3
+    log = mavutil.mavlink_connection(str(rec.out / "mavlink.tlog"), dialect=DIALECT)
+    got = []
+    while (m := log.recv_match()) is not None:
+        got.append(m)
+    assert [m.get_type() for m in got] == ["HEARTBEAT", "GPS_INPUT", "EKF_STATUS_REPORT"]
+    assert got[1].lat == 473_769_000 and got[1].get_srcComponent() == 197 and got[2].flags == 0x1FF
+    assert all(t0 - 1e-3 <= m._timestamp <= t1 + 1e-3 for m in got)
+    meta = yaml.safe_load((rec.out / "dataset.yaml").read_text())["recording"]
+    assert meta["mavlink_messages"] == 3 and abs(meta["unix_time_minus_clock_s"] - (time.time() - time.monotonic())) < 0.5

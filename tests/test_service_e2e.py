@@ -13,6 +13,7 @@ autopilot keeps getting 3D fixes from us that agree with the flight's truth.
 """
 from __future__ import annotations
 
+import collections
 import os
 import re
 import signal
@@ -414,6 +415,21 @@ def _check_recording(root: Path, feed: "VehicleFeed", loss_at: float, fixes_3d: 
     with open(out / "fixes.csv") as f:
         fixes = [line.split(",") for line in f.read().splitlines()[1:]]
     assert sum(float(r[1]) - feed.epoch_s > loss_at for r in fixes) >= len(fixes_3d) - 2, diag
+    # the MAVLink traffic both ways as a telemetry log (pymavlink's reader), on the dataset's clock
+    # through unix_time_minus_clock_s: every GPS_INPUT the autopilot got is in it, and ATTITUDE
+    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
+    from pymavlink import mavutil
+
+    tlog = mavutil.mavlink_connection(str(out / "mavlink.tlog"), dialect=DIALECT)
+    msgs = []
+    while (m := tlog.recv_match()) is not None:
+        msgs.append((m._timestamp - meta["unix_time_minus_clock_s"] - feed.epoch_s, m.get_type()))
+    kinds = collections.Counter(k for _, k in msgs)
+    print(f"mavlink.tlog: {len(msgs)} messages, {dict(kinds.most_common(8))}")
+    assert meta["mavlink_messages"] == len(msgs) and kinds["GPS_INPUT"] >= len(feed.gps_input) > 0, diag
+    assert kinds["ATTITUDE"] >= len(ds.attitude), diag
+    t_att = [t for t, k in msgs if k == "ATTITUDE"]
+    assert abs(t_att[0] - (ds.attitude[0].t_s - feed.epoch_s)) < 0.5 and abs(t_att[-1] - (ds.attitude[-1].t_s - feed.epoch_s)) < 0.5, diag
     summary = run_replay(load_config(environ={}), out, root.parent / "replay", repeatable=True)
     assert summary["frames"] == ds.n_frames
     # replayed, the GNSS monitor judges the recorded solutions: lost where the flight lost them
