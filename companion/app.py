@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from companion.config import AppConfig
 from companion.evaluate import FixErrors, GnssReference, fix_errors, stats, write_csv, write_geojson, write_report, write_tum
@@ -25,7 +26,8 @@ from gis.align.fine import FineTuner, ScaleCheck
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
 from gis.model import GisModel
-from gis.types import Alignment
+from gis.geodesy import R_NED_ENU, R_ecef_enu
+from gis.types import Alignment, GlobalFix
 from mavlink_bridge.monitor import GnssMonitor
 from mavlink_bridge.types import GnssQuality, no_fix_sample
 from slam.types import CameraModel
@@ -95,10 +97,11 @@ class GnssDenial:
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
                     initial_alignment: Alignment | None = None, initial_map=None,
-                    repeatable: bool = False) -> Localizer:
+                    repeatable: bool = False, p_body_gnss_m=(0.0, 0.0, 0.0)) -> Localizer:
     """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy).
     ``initial_map``: a slam.persist.LoadedMap to resume in (the service after a restart).
-    ``repeatable``: offline runs only (Localizer.settle, REPEATABLE_LAG_S); never live."""
+    ``repeatable``: offline runs only (Localizer.settle, REPEATABLE_LAG_S); never live.
+    ``p_body_gnss_m``: the GNSS antenna, FRD metres from the body origin (BootstrapCollector)."""
     from slam.system import SlamSystem
 
     slam = SlamSystem(camera, cfg.slam, initial_map=initial_map, reloc_timeout_s=cfg.persistence.reloc_timeout_s)
@@ -108,7 +111,8 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
                      finetune_min_parallax_deg=cfg.alignment.finetune_min_parallax_deg,
                      initial_alignment=initial_alignment,
                      repeatable_lag_s=REPEATABLE_LAG_S if repeatable else None,
-                     bootstrap=BootstrapCollector(T_body_cam=T_body_cam) if cfg.alignment.bootstrap_from_gnss
+                     bootstrap=BootstrapCollector(T_body_cam=T_body_cam, p_body_gnss_m=np.asarray(p_body_gnss_m, float))
+                     if cfg.alignment.bootstrap_from_gnss
                      else BootstrapCollector(min_pairs=10**9))
 
 
@@ -117,7 +121,8 @@ class RunLog:
     """Everything a run produced, for evaluation and plots (records in frame order)."""
 
     records: list[FrameRecord] = field(default_factory=list)
-    truth_ecef_m: dict[int, np.ndarray] = field(default_factory=dict)     # seq → camera ECEF truth
+    truth_ecef_m: dict[int, np.ndarray] = field(default_factory=dict)     # seq → body-origin ECEF truth (what a fix reports)
+    truth_cam_ecef_m: dict[int, np.ndarray] = field(default_factory=dict)  # seq → camera-centre ECEF truth (SLAM's ATE)
     gnss_ecef_m: list[tuple[float, np.ndarray, bool]] = field(default_factory=list)  # (t, ECEF, had fix)
     wall_track_ms: list[float] = field(default_factory=list)
     camera_to_wire_ms: list[float] = field(default_factory=list)
@@ -271,7 +276,8 @@ class SimFlight:
 
 def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel, T_body_cam: np.ndarray,
             model: GisModel | None, autopilot: str | None = None, output: str | None = None,
-            progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False) -> SimFlight:
+            progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
+            p_body_gnss_m=(0.0, 0.0, 0.0)) -> SimFlight:
     """Frames (SimStep-like: frame, gnss, attitude, truth) → Localizer → Bridge → simulated autopilot.
 
     The one loop behind ``demo`` and ``bench``: the autopilot (UDP 127.0.0.1) is fed the vehicle's
@@ -292,7 +298,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
     ap = SimAutopilot(autopilot, params=params, clock=clock).start()
     mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
-    localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable)
+    localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable, p_body_gnss_m=p_body_gnss_m)
     out_msg = output.upper()  # the fix message; heartbeats etc. are not fixes
     run, alignments, last_key = RunLog(), [], None
     try:
@@ -323,7 +329,8 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             if bridge.sent_count(out_msg) > sent_before:  # this fix's bytes were written to the socket
                 run.camera_to_wire_ms.append((t_wire - t_capture) * 1e3)
             if truth is not None:
-                run.truth_ecef_m[rec.seq] = truth.p_ecef_m
+                run.truth_ecef_m[rec.seq] = truth.p_body_ecef_m
+                run.truth_cam_ecef_m[rec.seq] = truth.p_ecef_m
                 est = ap.estimate()
                 if est.valid:
                     run.autopilot_err_m.append((step.frame.t_s, _horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
@@ -418,6 +425,18 @@ def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
 # replay
 
 
+def antenna_to_body(p_antenna_ecef_m: np.ndarray, fix: GlobalFix, p_body_gnss_m: np.ndarray) -> np.ndarray:
+    """The body origin where the receiver's antenna (``p_body_gnss_m``, FRD metres from it) is at
+    ``p_antenna_ecef_m``, turned by the fix's own attitude (a degree off moves a 0.3 m lever arm
+    5 mm); the antenna's position as it is when the fix has no attitude."""
+    lever = np.asarray(p_body_gnss_m, float)
+    if not lever.any() or fix.q_ned_body is None:
+        return p_antenna_ecef_m
+    w, x, y, z = fix.q_ned_body
+    R_ecef_body = R_ecef_enu(fix.lat_deg, fix.lon_deg) @ R_NED_ENU.T @ Rotation.from_quat([x, y, z, w]).as_matrix()
+    return p_antenna_ecef_m - R_ecef_body @ lever
+
+
 def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
                progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
                deny: GnssDenial | None = None) -> dict:
@@ -436,7 +455,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
         if deny.from_s >= last_s:
             raise ValueError(f"GNSS denial from {deny.from_s:g} s: the replayed frames end {last_s:.1f} s after the first")
     model = _load_first_model(ds.gis_files, cfg)
-    localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model, repeatable=repeatable)
+    localizer = build_localizer(cfg, ds.camera, ds.T_body_cam, model, repeatable=repeatable, p_body_gnss_m=ds.p_body_gnss_m)
     monitor = GnssMonitor(cfg.switching)
     run = RunLog(denial=deny)
     lost_since: float | None = None
@@ -470,7 +489,8 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             monitor.on_fix(rec.fix)
             run.records.append(rec)
             if step.truth is not None:
-                run.truth_ecef_m[rec.seq] = step.truth.p_ecef_m
+                run.truth_ecef_m[rec.seq] = step.truth.p_body_ecef_m
+                run.truth_cam_ecef_m[rec.seq] = step.truth.p_ecef_m
             if progress is not None:
                 progress(k + 1, n, "")
         localizer.settle(math.inf)
@@ -487,7 +507,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
         for r in run.records:
             at = ref.at(r.fix.t_s) if r.fix is not None and deny.covers(r.fix.t_s) else None
             if at is not None:
-                run.reference[r.seq] = at
+                run.reference[r.seq] = (antenna_to_body(at[0], r.fix, ds.p_body_gnss_m), at[1])
     summary = summarize(run, name=f"replay {ds.name}")
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, ds.origin, f"TerraSLAM replay of {ds.name}")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title=f"TerraSLAM replay of {ds.name}")

@@ -227,7 +227,8 @@ def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
-    f = fly_sim(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress=progress, repeatable=repeatable)
+    f = fly_sim(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress=progress, repeatable=repeatable,
+                p_body_gnss_m=ds.p_body_gnss_m)
     wall = time.perf_counter() - t0
     res = sampler.stop()
     return BenchRun(ds.name, f.run, ds.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,
@@ -259,12 +260,12 @@ def gnss_baseline_errors(scenario, base: str, t_from_s: float = 0.0, t_to_s: flo
 def ate_sim3_percent(run: RunLog, origin: LocalFrame, map_key: tuple[int, int] | None) -> tuple[float | None, str | None]:
     """SLAM-only trajectory error: camera centres of the final map's tracked frames aligned to
     truth with Umeyama (Sim(3), TerraSLAM Eq. 2 solver), RMSE / truth path length × 100."""
-    recs = [r for r in run.records if r.pose.state.has_pose and r.seq in run.truth_ecef_m
+    recs = [r for r in run.records if r.pose.state.has_pose and r.seq in run.truth_cam_ecef_m
             and (r.pose.map_id, r.pose.reset_counter) == map_key]
     if len(recs) < 3:
         return None, f"only {len(recs)} tracked frames with truth in the final SLAM map"
     p_slam = np.stack([r.pose.T_slam_cam[:3, 3] for r in recs])
-    p_true = origin.ecef_to_enu(np.stack([run.truth_ecef_m[r.seq] for r in recs]))
+    p_true = origin.ecef_to_enu(np.stack([run.truth_cam_ecef_m[r.seq] for r in recs]))
     path_m = float(np.linalg.norm(np.diff(p_true, axis=0), axis=1).sum())
     if path_m < 1.0:
         return None, f"truth path only {path_m:.2f} m long"

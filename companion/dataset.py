@@ -5,7 +5,7 @@ and assembled by hand from a real flight. Boring on purpose: YAML + CSV + PNG/JP
       dataset.yaml          format version, name, fps, frame count, what produced it
       site.yaml             local origin + rough initial position (+ σ) + GIS model files
       camera.yaml           OpenCV calibration (image_width/height, camera_matrix, distortion_coefficients)
-      mount.yaml            T_body_cam: 4x4 camera (OpenCV) → body (FRD)
+      mount.yaml            T_body_cam: 4x4 camera (OpenCV) → body (FRD); p_body_gnss_m: GNSS antenna (FRD m, optional)
       images/frames.csv     seq,t_s,filename   (images/000000.png ...)
       truth.csv             optional: seq,t_s,lat_deg,lon_deg,h_ellipsoid_m,h_msl_m,roll_deg,pitch_deg,yaw_deg,vn_mps,ve_mps,vd_mps
       gnss.csv              optional: t_s,fix_type,lat_deg,lon_deg,alt_msl_m,h_ellipsoid_m,eph,epv,h_acc_m,v_acc_m,satellites,vn_mps,ve_mps,vd_mps,cog_deg
@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from companion.calibration import CalibrationError, read_camera_model, write_calibration
 from companion.sim.autopilot_signals import R_ned_body_at_vehicle
 from companion.sim.types import AttitudeSample, SimStep, TruthPose
-from gis.geodesy import LocalFrame, R_NED_ENU, R_ecef_enu, geodetic_to_ecef
+from gis.geodesy import LocalFrame, R_NED_ENU, R_ecef_enu, ecef_to_geodetic, ellipsoid_to_msl, geodetic_to_ecef
 from mavlink_bridge.types import GnssSample, GpsFixType
 from slam.types import CameraModel, Frame
 
@@ -72,6 +72,7 @@ class Dataset:
     gnss: list[GnssSample] = field(default_factory=list)
     attitude: list[AttitudeSample] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+    p_body_gnss_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # GNSS antenna, FRD m from the body origin
 
     @property
     def n_frames(self) -> int:
@@ -121,17 +122,21 @@ def attitude_row(a) -> list:
     return [_f(a.t_s, 6), _f(a.roll_rad, 7), _f(a.pitch_rad, 7), _f(a.yaw_rad, 7), _f(a.baro_alt_m, 3)]
 
 
-def write_mount(path: Path, T_body_cam: np.ndarray) -> None:
-    """mount.yaml: the 4x4 camera (OpenCV) → body (FRD) transform."""
-    path.write_text(yaml.safe_dump({"T_body_cam": np.round(np.asarray(T_body_cam, float), 12).tolist()}))
+def write_mount(path: Path, T_body_cam: np.ndarray, p_body_gnss_m=(0.0, 0.0, 0.0)) -> None:
+    """mount.yaml: the 4x4 camera (OpenCV) → body (FRD) transform and the GNSS antenna (FRD m)."""
+    path.write_text(yaml.safe_dump({"T_body_cam": np.round(np.asarray(T_body_cam, float), 12).tolist(),
+                                    "p_body_gnss_m": [float(x) for x in p_body_gnss_m]}))
 
 
 def truth_rows(scenario) -> list[list[str]]:
+    """truth.csv rows: the body origin's position (DATASET.md), its attitude and velocity."""
     tr = scenario.truth
     R_enu_body = tr.T_enu_body[:, :3, :3]
-    ypr = np.degrees(Rotation.from_matrix(R_ned_body_at_vehicle(scenario.origin, R_enu_body, tr.lat, tr.lon)).as_euler("ZYX"))
+    lat, lon, h_ell = ecef_to_geodetic(tr.p_body_ecef)
+    h_msl = ellipsoid_to_msl(lat, lon, h_ell)
+    ypr = np.degrees(Rotation.from_matrix(R_ned_body_at_vehicle(scenario.origin, R_enu_body, lat, lon)).as_euler("ZYX"))
     v_ned = tr.v_enu @ R_NED_ENU.T
-    return [[str(i), _f(tr.t_s[i], 6), _f(tr.lat[i], 11), _f(tr.lon[i], 11), _f(tr.h_ell[i], 5), _f(tr.h_msl[i], 5),
+    return [[str(i), _f(tr.t_s[i], 6), _f(lat[i], 11), _f(lon[i], 11), _f(h_ell[i], 5), _f(h_msl[i], 5),
              _f(ypr[i, 2], 8), _f(ypr[i, 1], 8), _f(ypr[i, 0] % 360.0, 8), _f(v_ned[i, 0], 4), _f(v_ned[i, 1], 4), _f(v_ned[i, 2], 4)]
             for i in range(len(tr.t_s))]
 
@@ -277,7 +282,7 @@ def _truth_pose(row: dict, i: int, origin: LocalFrame, T_body_cam: np.ndarray) -
     v_ned = np.array([row[k] if row.get(k) is not None else np.nan for k in ("vn_mps", "ve_mps", "vd_mps")])
     v_enu = origin.R_ecef_enu.T @ R_ecef_enuveh @ (R_NED_ENU @ v_ned)
     return TruthPose(row["t_s"], i, T_enu_cam, T_enu_body, origin.enu_to_ecef(T_enu_cam[:3, 3]), lat, lon, h,
-                     row["h_msl_m"], v_enu)
+                     row["h_msl_m"], v_enu, p_ecef)
 
 
 def read_dataset(path: Path | str) -> Dataset:
@@ -292,9 +297,16 @@ def read_dataset(path: Path | str) -> Dataset:
     except CalibrationError as e:
         raise DatasetError(f"{root / 'camera.yaml'}: {e}") from None
     mount_path = root / "mount.yaml"
-    T = np.asarray(_yaml(mount_path).get("T_body_cam"), float)
+    mount = _yaml(mount_path)
+    T = np.asarray(mount.get("T_body_cam"), float)
     if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
         raise DatasetError(f"{mount_path}: T_body_cam must be a 4x4 rigid transform (rotation + translation)")
+    try:
+        p_gnss = np.asarray(mount.get("p_body_gnss_m", [0.0, 0.0, 0.0]), float)
+    except (TypeError, ValueError):
+        p_gnss = np.full(1, np.nan)
+    if p_gnss.shape != (3,) or not np.all(np.isfinite(p_gnss)) or np.any(np.abs(p_gnss) > 10.0):
+        raise DatasetError(f"{mount_path}: p_body_gnss_m must be 3 finite numbers (FRD metres, within 10 m of the body origin)")
     sp = root / "site.yaml"
     rp = site.get("rough_position")
     if not isinstance(rp, dict):
@@ -344,4 +356,4 @@ def read_dataset(path: Path | str) -> Dataset:
         attitude = [AttitudeSample(r["t_s"], r["roll_rad"], r["pitch_rad"], r["yaw_rad"], r["baro_alt_m"])
                     for r in _read_csv(root / "attitude.csv", ATTITUDE_COLUMNS[:-1], ATTITUDE_COLUMNS[-1:])]
     return Dataset(root, str(meta.get("name", root.name)), fps, camera, T, origin, rough, gis_files, t_frames, paths,
-                   truth, gnss, attitude, meta)
+                   truth, gnss, attitude, meta, p_gnss)

@@ -81,8 +81,8 @@ REFERENCE_MAX_GAP_S = 1.0
 class GnssReference:
     """The receiver's 3D solutions that a replay withheld from the pipeline (simulated denial): what
     a flight without truth.csv is judged against. Only as good as the receiver (its h_acc_m, RTK:
-    centimetres, DGPS/SBAS: about a metre), and it is the antenna's position, which the fixes'
-    body origin is taken to be (DATASET.md: the lever arm is not applied).
+    centimetres, DGPS/SBAS: about a metre), and it is the antenna's position (run_replay carries it
+    to the body origin with mount.yaml's p_body_gnss_m and each fix's attitude).
     t_s: (N,) increasing; p_ecef_m: (N, 3); h_acc_m: (N,) 1-σ."""
 
     t_s: np.ndarray

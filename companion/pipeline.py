@@ -98,7 +98,8 @@ class FrameRecord:
 
 @dataclass(frozen=True)
 class GnssPair:
-    """One receiver solution carried to a frame's time, with that frame's SLAM camera centre.
+    """One receiver solution carried to a frame's time (and, with an attitude, from its antenna to
+    the camera centre), with that frame's SLAM camera centre.
 
     R_ecef_enu: the local level frame at the GNSS position (for horizontal innovations);
     R_ecef_slam: the SLAM frame's orientation from the autopilot's attitude, or None."""
@@ -243,13 +244,18 @@ class BootstrapCollector:
     Each GNSS position is carried to the frame's capture time with its reported velocity (a 0.1 s
     lag at 10 m/s would otherwise be a 1 m along-track bias). With ``T_body_cam`` and an attitude
     prior per frame, each pair also records the SLAM frame's orientation in ECEF
-    (R_ecef_enu·R_enu_ned·R_ned_body·R_body_cam·R_slam_camᵀ) and the fit uses it for the rotation.
+    (R_ecef_enu·R_enu_ned·R_ned_body·R_body_cam·R_slam_camᵀ) and the fit uses it for the rotation,
+    and the receiver's position is carried from its antenna (``p_body_gnss_m``, FRD metres from the
+    body origin: the autopilot's GPS_POS*/EKF2_GPS_POS_*) to the camera centre (T_body_cam's
+    translation) along the attitude: R_ecef_body·(t_body_cam − p_body_gnss). Without an attitude
+    that lever arm cannot be turned into the map, and its length is added to the pair's accuracy.
     """
 
     min_pairs: int = 30
     min_baseline_m: float = 40.0
     max_pairs: int = 150
     T_body_cam: np.ndarray | None = None
+    p_body_gnss_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     max_prior_age_s: float = 0.1
     p_slam: list[np.ndarray] = field(default_factory=list)
     p_ecef: list[np.ndarray] = field(default_factory=list)
@@ -301,10 +307,15 @@ class BootstrapCollector:
             v_ned = np.nan_to_num(np.asarray(sample.vel_ned_mps, float))  # GPS_RAW_INT has no vertical speed
             p_ecef = frame.ned_to_ecef(v_ned * dt)
         R = None
+        lever_body_m = (np.zeros(3) if self.T_body_cam is None else self.T_body_cam[:3, 3]) - np.asarray(self.p_body_gnss_m, float)
         if prior is not None and self.T_body_cam is not None and abs(prior.t_s - pose.t_s) <= self.max_prior_age_s:
             R_ned_body = Rotation.from_euler("ZYX", [prior.yaw_rad, prior.pitch_rad, prior.roll_rad]).as_matrix()
-            R = (frame.R_ecef_enu @ R_NED_ENU.T @ R_ned_body @ self.T_body_cam[:3, :3]
-                 @ np.asarray(pose.T_slam_cam, float)[:3, :3].T)
+            R_ecef_body = frame.R_ecef_enu @ R_NED_ENU.T @ R_ned_body
+            p_ecef = p_ecef + R_ecef_body @ lever_body_m  # antenna → camera centre
+            R = R_ecef_body @ self.T_body_cam[:3, :3] @ np.asarray(pose.T_slam_cam, float)[:3, :3].T
+        else:
+            lever_m = float(np.linalg.norm(lever_body_m))
+            h_acc, v_acc = math.hypot(h_acc, lever_m), math.hypot(v_acc, lever_m)
         return GnssPair(pose.t_s, pose.T_slam_cam[:3, 3].copy(), p_ecef, frame.R_ecef_enu, R, max(h_acc, 0.1), max(v_acc, 0.1))
 
     def append(self, pair: GnssPair) -> None:
@@ -755,8 +766,9 @@ class Localizer:
         self._baro_offset_m = off if self._baro_offset_m is None else self._baro_offset_m + BARO_OFFSET_GAIN * (off - self._baro_offset_m)
 
     def _camera_h_ell_m(self, prior: AttitudePrior | None) -> float | None:
-        """The camera's ellipsoidal height from the barometer (the camera-to-antenna lever ignored:
-        centimetres), or None without a barometer or an offset learned from GNSS."""
+        """The camera's ellipsoidal height from the barometer (the offset is learned from pairs,
+        which hold the camera centre when the attitude is known), or None without a barometer or an
+        offset learned from GNSS."""
         baro = _baro_m(prior)
         return None if baro is None or self._baro_offset_m is None else baro + self._baro_offset_m
 

@@ -340,7 +340,8 @@ class FlightRecorder:
 
 
 def open_recording(root: Path, cfg: RecordingConfig, camera: CameraModel, T_body_cam: np.ndarray, fps: float,
-                   origin: LocalFrame, gis_files: list[Path], site_id: str | None = None) -> FlightRecorder:
+                   origin: LocalFrame, gis_files: list[Path], site_id: str | None = None,
+                   p_body_gnss_m=(0.0, 0.0, 0.0)) -> FlightRecorder:
     """A started recorder in a new ``flight-<UTC time>`` folder under ``root``. Raises OSError when
     the folder cannot be made or the disk is already under ``min_free_mb`` (the caller logs and
     runs without)."""
@@ -352,6 +353,6 @@ def open_recording(root: Path, cfg: RecordingConfig, camera: CameraModel, T_body
     out = _unique_dir(root, "flight-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ"))
     rec = FlightRecorder(out, cfg, fps, origin, gis_files, site_id)
     write_calibration(out / "camera.yaml", camera)
-    write_mount(out / "mount.yaml", T_body_cam)
+    write_mount(out / "mount.yaml", T_body_cam, p_body_gnss_m)
     return rec.start()
 

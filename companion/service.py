@@ -71,7 +71,7 @@ def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str):
     root = cfg.recording.dir or cfg.supervisor.state_dir / "recordings"
     try:
         return open_recording(root, cfg.recording, camera, T_body_cam, cfg.camera.fps, model.origin,
-                              [cfg.gis.model.expanduser()], site_id)
+                              [cfg.gis.model.expanduser()], site_id, cfg.mavlink.gnss_antenna_m)
     except OSError as e:
         log_event(log, "recording_unavailable", f"flight recorder off for this run: {e}", level=logging.ERROR)
         return None
@@ -99,7 +99,7 @@ def run_service(cfg: AppConfig) -> int:
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
     localizer = build_localizer(cfg, source.camera_model, T_body_cam, model,
-                                initial_map=restored.loaded if restored else None)
+                                initial_map=restored.loaded if restored else None, p_body_gnss_m=cfg.mavlink.gnss_antenna_m)
     if restored is not None:
         _restore_alignment(cfg, localizer, restored)
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()

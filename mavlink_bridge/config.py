@@ -1,10 +1,11 @@
 """Config sections ``mavlink`` and ``switching`` (validated; unknown keys are errors)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class MavlinkConfig(BaseModel):
@@ -39,6 +40,16 @@ class MavlinkConfig(BaseModel):
     ekf_source_set_extnav: int = Field(2, ge=1, le=3, description="ArduPilot EKF3 source set whose POSXY is ExternalNav (6)")
     px4_gps_ctrl: int = Field(7, ge=0, le=15, description="PX4 EKF2_GPS_CTRL restored at hand-back (the bridge sets 0 on takeover)")
     reconnect_max_s: float = Field(8.0, gt=0, description="longest back-off between reconnect attempts (serial/TCP)")
+    gnss_antenna_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="antenna of the GNSS receiver the autopilot reports, from the body origin, FRD metres "
+        "(ArduPilot GPS_POS1_X/Y/Z, PX4 EKF2_GPS_POS_X/Y/Z): GNSS fits carry it to the camera along the attitude")
+
+    @field_validator("gnss_antenna_m")
+    @classmethod
+    def _antenna_on_the_vehicle(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(math.isfinite(x) and abs(x) <= 10.0 for x in v):
+            raise ValueError(f"{v}: each component must be finite and within 10 m of the body origin")
+        return v
 
 
 class SwitchingConfig(BaseModel):

@@ -147,3 +147,28 @@ def test_the_gnss_reference_interpolates_only_between_close_3d_solutions():
     assert ref.at(0.2)[1] == 0.7
     assert ref.at(-0.1) is None and ref.at(0.2 + gap + 0.1) is None
     assert ref.at(0.3) is None, "across a gap longer than REFERENCE_MAX_GAP_S"
+
+
+def test_a_reference_antenna_is_carried_to_the_body_origin_along_the_fix_attitude():
+    """Heading east (yaw 90°), an antenna 0.2 m forward and 0.3 m above the body origin sits
+    0.2 m east and 0.3 m up of it; without an attitude or a lever arm nothing moves."""
+    from dataclasses import replace
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from companion.app import antenna_to_body
+    from gis.geodesy import LocalFrame
+    from gis.types import AlignmentSource, GlobalFix
+
+    site = LocalFrame(47.3769, 8.5417, 450.0)
+    body = site.enu_to_ecef(np.array([[10.0, 20.0, 60.0]]))[0]
+    antenna = site.enu_to_ecef(np.array([[10.2, 20.0, 60.3]]))[0]
+    x, y, z, w = Rotation.from_euler("ZYX", [90.0, 0.0, 0.0], degrees=True).as_quat()
+    fix = GlobalFix(t_s=1.0, seq=1, p_ecef_m=body, lat_deg=47.3771, lon_deg=8.5418, h_ellipsoid_m=510.0, h_msl_m=462.0,
+                    cov_ned_m2=np.eye(3) * 0.25, h_acc_m=0.5, v_acc_m=0.8, source=AlignmentSource.FINE,
+                    q_ned_body=np.array([w, x, y, z]))
+    lever = np.array([0.2, 0.0, -0.3])
+    assert np.linalg.norm(antenna_to_body(antenna, fix, lever) - body) < 0.005
+    assert antenna_to_body(antenna, replace(fix, q_ned_body=None), lever) is antenna
+    assert antenna_to_body(antenna, fix, np.zeros(3)) is antenna

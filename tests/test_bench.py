@@ -68,7 +68,8 @@ def constructed_run(scenario, model, offset_enu_m=(0.0, 0.0, 0.0), slam_drift_pe
         fix = glob.fix(pose)
         run.wall_track_ms.append((time.perf_counter() - t0) * 1e3)
         run.records.append(FrameRecord(i, pose.t_s, pose, fix, AlignmentSource.FINE, time.monotonic()))
-        run.truth_ecef_m[i] = scenario.truth.p_ecef[i]
+        run.truth_ecef_m[i] = scenario.truth.p_body_ecef[i]
+        run.truth_cam_ecef_m[i] = scenario.truth.p_ecef[i]
     run.takeover_t_s = float(scenario.truth.t_s[N_FRAMES // 2])
     time.sleep(0.05)
     res = sampler.stop()

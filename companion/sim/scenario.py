@@ -103,15 +103,17 @@ class Truth:
     T_enu_body: np.ndarray
     T_enu_cam: np.ndarray
     v_enu: np.ndarray
-    p_ecef: np.ndarray
+    p_ecef: np.ndarray          # camera centres
     lat: np.ndarray
     lon: np.ndarray
     h_ell: np.ndarray
     h_msl: np.ndarray
+    p_body_ecef: np.ndarray     # body origins (what a fix reports; truth.csv's position)
 
     def pose(self, i: int) -> TruthPose:
         return TruthPose(float(self.t_s[i]), i, self.T_enu_cam[i], self.T_enu_body[i], self.p_ecef[i],
-                         float(self.lat[i]), float(self.lon[i]), float(self.h_ell[i]), float(self.h_msl[i]), self.v_enu[i])
+                         float(self.lat[i]), float(self.lon[i]), float(self.h_ell[i]), float(self.h_msl[i]), self.v_enu[i],
+                         self.p_body_ecef[i])
 
 
 @dataclass
@@ -199,7 +201,7 @@ def make_truth(traj: Trajectory, origin: LocalFrame, T_body_cam: np.ndarray, t_s
     c = T_enu_cam[:, :3, 3]
     p_ecef = origin.enu_to_ecef(c)
     lat, lon, h = origin.enu_to_geodetic(c)
-    return Truth(t_s, T_enu_body, T_enu_cam, v, p_ecef, lat, lon, h, ellipsoid_to_msl(lat, lon, h))
+    return Truth(t_s, T_enu_body, T_enu_cam, v, p_ecef, lat, lon, h, ellipsoid_to_msl(lat, lon, h), origin.enu_to_ecef(p))
 
 
 def scenario_spec(name: str, **overrides) -> ScenarioSpec:

@@ -15,7 +15,8 @@ class TruthPose:
 
     T_enu_cam / T_enu_body: 4x4 camera→ENU and body(FRD)→ENU at the site origin. p_ecef_m: (3,)
     camera centre in ECEF; lat/lon/h_ellipsoid_m/h_msl_m (EGM96) of the camera centre.
-    v_enu_mps: (3,) vehicle velocity in ENU.
+    v_enu_mps: (3,) vehicle velocity in ENU. p_body_ecef_m: (3,) the body origin in ECEF, the point
+    a GlobalFix reports (and truth.csv holds).
     """
 
     t_s: float
@@ -28,6 +29,7 @@ class TruthPose:
     h_ellipsoid_m: float
     h_msl_m: float
     v_enu_mps: np.ndarray
+    p_body_ecef_m: np.ndarray
 
 
 @dataclass(frozen=True)
