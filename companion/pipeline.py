@@ -780,6 +780,18 @@ class Localizer:
         d_m = a.T_ecef_slam.scale * float(np.linalg.norm(np.asarray(c_slam) - a.center_slam))
         return float(np.hypot(a.sigma_m, (self.globalizer.slam_drift_fraction + a.scale_sigma) * d_m))
 
+    def gnss_offset_m(self, now_s: float, max_age_s: float = 1.0) -> float | None:
+        """How far GNSS sits from our position, horizontally: the running mean (``ema_s``) of the
+        innovations GnssConsistency tracks, while they keep coming (the newest at most
+        ``max_age_s`` before ``now_s``, on the frames' clock); else None. A readiness figure for a
+        field trial: while GNSS is good, alignments are fitted to it, so this is agreement (the
+        GIS registrations' and the receiver's), not accuracy."""
+        with self._lock:
+            c = self.gnss_check
+            if c._mean is None or c._last_t is None or now_s - c._last_t > max_age_s:
+                return None
+            return float(np.hypot(c._mean[0], c._mean[1]))
+
     def gnss_inconsistency(self) -> str | None:
         """Why GNSS is not to be trusted according to visual odometry, or None."""
         c = self.gnss_check

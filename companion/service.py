@@ -172,10 +172,13 @@ def run_service(cfg: AppConfig) -> int:
 
     def status() -> str:
         now = time.monotonic()
-        if now - last_log[0] > 10.0:
-            log.info("latency: %s", latency.format())
-            last_log[0] = now
         a = localizer.alignment
-        return f"{bridge.state.value}; GNSS {bridge.gnss_status().quality.value}; alignment {a.source.value if a else 'none'}"
+        off = localizer.gnss_offset_m(now)
+        text = (f"{bridge.state.value}; GNSS {bridge.gnss_status().quality.value}; alignment {a.source.value if a else 'none'}"
+                + ("" if off is None else f"; GNSS {off:.1f} m from ours"))
+        if now - last_log[0] > 10.0:
+            log.info("%s; latency: %s", text, latency.format())
+            last_log[0] = now
+        return text
 
     return sup.run(status=status)

@@ -186,7 +186,8 @@ def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path,
     assert any(t_ready + DEADLINE_S < t for t in pings)
     # STATUS lines carry bridge state, GNSS quality and alignment
     assert statuses and all(
-        re.fullmatch(r"STATUS=(tracking|(standby|active); GNSS \w+; alignment \w+|degraded: .+)", s) for s in statuses
+        re.fullmatch(r"STATUS=(tracking|(standby|active); GNSS \w+; alignment \w+(; GNSS \d+\.\d m from ours)?|degraded: .+)", s)
+        for s in statuses
     ), statuses
     # the bridge talks MAVLink over UDP both ways: our heartbeats arrive, and it heard the autopilot
     assert received.counts["HEARTBEAT"] >= 2
@@ -317,7 +318,7 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
         ready_t = feed.flight_t(notify.times("READY=1")[0])
 
         def aligned() -> bool:
-            return any(s.endswith("alignment gnss") for s in notify.lines("STATUS="))
+            return any(re.search(r"; alignment gnss(;|$)", s) for s in notify.lines("STATUS="))
         notify.wait_for(lambda: aligned() or feed.flight_t() >= LATEST_LOSS_S - 1.0, LATEST_LOSS_S + 5.0, proc)
         aligned_t = feed.flight_t() if aligned() else None
         feed.loss_at_s = loss_at = min(max(EARLIEST_LOSS_S, feed.flight_t() + 1.0), LATEST_LOSS_S)
@@ -374,6 +375,9 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
     assert aligned_t is not None, f"no GNSS alignment by {LATEST_LOSS_S - 1.0} s of flight:\n{diag}"
     # on good GNSS the bridge stood by; it took over when GNSS was lost
     assert any(s.startswith("standby; GNSS good; alignment gnss") for _, s in statuses), diag
+    # ... and said how far GNSS sat from our position (the readiness figure): within GnssConsistency's 5 m gate
+    offs = [float(m.group(1)) for t, s in statuses if t < loss_at and (m := re.search(r"; GNSS (\d+\.\d) m from ours$", s))]
+    assert offs and max(offs) < 5.0, diag
     assert not any(t.startswith("TerraSLAM ACTIVE") for t in texts_before), diag
     assert any(t.startswith("TerraSLAM ACTIVE: GNSS lost") for t in texts[len(texts_before):]), diag
     # after the loss the autopilot keeps taking GPS_INPUT from us, with a 3D fix (one a frame, 2 Hz)
