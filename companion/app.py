@@ -439,13 +439,14 @@ def antenna_to_body(p_antenna_ecef_m: np.ndarray, fix: GlobalFix, p_body_gnss_m:
 
 def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
                progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
-               deny: GnssDenial | None = None) -> dict:
+               deny: GnssDenial | None = None, gis_model: Path | None = None) -> dict:
     """Offline replay of a dataset: GNSS judged by the same monitor as live, no autopilot.
     ``repeatable``: as in fly_sim. ``deny``: GNSS withheld over a span (GnssDenial), and the
-    fixes sent meanwhile judged against it (summary ``against_withheld_gnss``)."""
+    fixes sent meanwhile judged against it (summary ``against_withheld_gnss``). ``gis_model``:
+    the GIS model to use instead of the files site.yaml names."""
     from companion.dataset import read_dataset
 
-    ds = read_dataset(dataset_dir)
+    ds = read_dataset(dataset_dir, None if gis_model is None else [gis_model])
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir} lists no GIS model file (site.yaml gis)")
     n = ds.n_frames if max_frames is None else min(ds.n_frames, max_frames)

@@ -135,6 +135,7 @@ def replay(
     repeatable: bool = typer.Option(False, "--repeatable", help="local mapping and fine-tuning keep step with the recorded clock: the same replay gives the same fixes to the bit (as `bench --repeatable`)"),
     deny_from: Optional[float] = typer.Option(None, "--deny-gnss-from", help="simulated GNSS denial: from this many seconds after the first frame, GNSS reaches the pipeline as 'no fix'; the fixes sent meanwhile are judged against the withheld GNSS (a recorded flight's yardstick)"),
     deny_until: Optional[float] = typer.Option(None, "--deny-gnss-until", help="end of the simulated denial, seconds after the first frame (default: to the end)"),
+    gis_model: Optional[Path] = typer.Option(None, "--gis-model", help="GIS model file to use instead of those site.yaml names (a recording copied off the drone)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth
@@ -156,7 +157,8 @@ def replay(
             def progress(k, n, state):
                 bar.update(task, completed=k, total=n)
 
-            summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable, deny=deny)
+            summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable, deny=deny,
+                                 gis_model=gis_model)
     except (DatasetError, ValueError, FileNotFoundError) as e:
         fail(str(e))
     _print_summary(summary, out)

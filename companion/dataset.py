@@ -285,8 +285,10 @@ def _truth_pose(row: dict, i: int, origin: LocalFrame, T_body_cam: np.ndarray) -
                      row["h_msl_m"], v_enu, p_ecef)
 
 
-def read_dataset(path: Path | str) -> Dataset:
-    """Read a dataset directory (layout in docs/DATASET.md); raises DatasetError naming the file."""
+def read_dataset(path: Path | str, gis_files: list[Path] | None = None) -> Dataset:
+    """Read a dataset directory (layout in docs/DATASET.md); raises DatasetError naming the file.
+    ``gis_files``: the GIS model files to use instead of site.yaml's (a recording moved to another
+    machine names the model where the companion computer had it)."""
     root = Path(path)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory not found")
@@ -315,10 +317,16 @@ def read_dataset(path: Path | str) -> Dataset:
                           float(rp.get("sigma_m", 50.0)))
     og = site.get("origin") or {"lat_deg": rough.lat_deg, "lon_deg": rough.lon_deg, "h_ellipsoid_m": rough.h_ellipsoid_m}
     origin = LocalFrame(_num(og, "lat_deg", sp), _num(og, "lon_deg", sp), _num(og, "h_ellipsoid_m", sp))
-    gis_files = [root / f for f in (site.get("gis") or {}).get("files", [])]
-    for f in gis_files:
-        if not f.is_file():
-            raise DatasetError(f"{sp}: gis file {f} does not exist")
+    if gis_files is None:
+        gis_files = [root / f for f in (site.get("gis") or {}).get("files", [])]
+        for f in gis_files:
+            if not f.is_file():
+                raise DatasetError(f"{sp}: gis file {f} does not exist (give the model's path here with --gis-model)")
+    else:
+        gis_files = [Path(f) for f in gis_files]
+        for f in gis_files:
+            if not f.is_file():
+                raise DatasetError(f"GIS model {f} does not exist")
     fcsv = root / "images" / "frames.csv"
     if not fcsv.is_file():
         raise DatasetError(f"{fcsv}: missing (columns seq,t_s,filename)")

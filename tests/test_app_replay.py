@@ -172,3 +172,33 @@ def test_a_reference_antenna_is_carried_to_the_body_origin_along_the_fix_attitud
     assert np.linalg.norm(antenna_to_body(antenna, fix, lever) - body) < 0.005
     assert antenna_to_body(antenna, replace(fix, q_ned_body=None), lever) is antenna
     assert antenna_to_body(antenna, fix, np.zeros(3)) is antenna
+
+
+def test_replay_of_a_dataset_whose_gis_model_moved_takes_it_from_gis_model(tmp_path):
+    """A recording names the GIS model where the companion computer had it: elsewhere the replay
+    says so and takes the model given with --gis-model."""
+    import shutil
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from companion.cli import _register_subcommands, app
+
+    ds = tmp_path / "ds"
+    write_dataset(make_scenario("nominal", seed=3, n_frames=12), ds, progress=False)
+    site = yaml.safe_load((ds / "site.yaml").read_text())
+    model = tmp_path / "elsewhere" / "model.ply"
+    model.parent.mkdir()
+    for suffix in ("", ".georef.json"):
+        shutil.move(ds / (site["gis"]["files"][0] + suffix), str(model) + suffix)
+    site["gis"]["files"] = ["/var/lib/terraslam/models/model.ply"]
+    (ds / "site.yaml").write_text(yaml.safe_dump(site))
+    _register_subcommands()
+    runner = CliRunner()
+    r = runner.invoke(app, ["replay", str(ds), "--out", str(tmp_path / "o1")])
+    assert r.exit_code == 2 and "/var/lib/terraslam/models/model.ply does not exist" in r.output and "--gis-model" in r.output
+    r = runner.invoke(app, ["replay", str(ds), "--out", str(tmp_path / "o2"), "--gis-model", str(tmp_path / "nowhere.ply")])
+    assert r.exit_code == 2 and "nowhere.ply does not exist" in r.output
+    r = runner.invoke(app, ["replay", str(ds), "--out", str(tmp_path / "o3"), "--gis-model", str(model)])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "o3" / "report.json").read_text())["frames"] == 12
