@@ -23,10 +23,10 @@ from companion.config import AppConfig
 from companion.evaluate import FixErrors, GnssReference, fix_errors, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
+from gis.geodesy import R_NED_ENU, R_ecef_enu
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
 from gis.model import GisModel
-from gis.geodesy import R_NED_ENU, R_ecef_enu
 from gis.types import Alignment, GlobalFix
 from mavlink_bridge.monitor import GnssMonitor
 from mavlink_bridge.types import GnssQuality, no_fix_sample

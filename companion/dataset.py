@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from companion.calibration import CalibrationError, read_camera_model, write_calibration
 from companion.sim.autopilot_signals import R_ned_body_at_vehicle
 from companion.sim.types import AttitudeSample, SimStep, TruthPose
-from gis.geodesy import LocalFrame, R_NED_ENU, R_ecef_enu, ecef_to_geodetic, ellipsoid_to_msl, geodetic_to_ecef
+from gis.geodesy import LocalFrame, R_NED_ENU, R_ecef_enu, geodetic_to_ecef
 from mavlink_bridge.types import GnssSample, GpsFixType
 from slam.types import CameraModel, Frame
 
@@ -132,11 +132,9 @@ def truth_rows(scenario) -> list[list[str]]:
     """truth.csv rows: the body origin's position (DATASET.md), its attitude and velocity."""
     tr = scenario.truth
     R_enu_body = tr.T_enu_body[:, :3, :3]
-    lat, lon, h_ell = ecef_to_geodetic(tr.p_body_ecef)
-    h_msl = ellipsoid_to_msl(lat, lon, h_ell)
-    ypr = np.degrees(Rotation.from_matrix(R_ned_body_at_vehicle(scenario.origin, R_enu_body, lat, lon)).as_euler("ZYX"))
+    ypr = np.degrees(Rotation.from_matrix(R_ned_body_at_vehicle(scenario.origin, R_enu_body, tr.lat, tr.lon)).as_euler("ZYX"))
     v_ned = tr.v_enu @ R_NED_ENU.T
-    return [[str(i), _f(tr.t_s[i], 6), _f(lat[i], 11), _f(lon[i], 11), _f(h_ell[i], 5), _f(h_msl[i], 5),
+    return [[str(i), _f(tr.t_s[i], 6), _f(tr.lat[i], 11), _f(tr.lon[i], 11), _f(tr.h_ell[i], 5), _f(tr.h_msl[i], 5),
              _f(ypr[i, 2], 8), _f(ypr[i, 1], 8), _f(ypr[i, 0] % 360.0, 8), _f(v_ned[i, 0], 4), _f(v_ned[i, 1], 4), _f(v_ned[i, 2], 4)]
             for i in range(len(tr.t_s))]
 
@@ -321,7 +319,7 @@ def read_dataset(path: Path | str, gis_files: list[Path] | None = None) -> Datas
         gis_files = [root / f for f in (site.get("gis") or {}).get("files", [])]
         for f in gis_files:
             if not f.is_file():
-                raise DatasetError(f"{sp}: gis file {f} does not exist (give the model's path here with --gis-model)")
+                raise DatasetError(f"{sp}: gis file {f} does not exist (`terraslam replay --gis-model FILE` takes it from elsewhere)")
     else:
         gis_files = [Path(f) for f in gis_files]
         for f in gis_files:

@@ -158,6 +158,13 @@ class GnssConsistency:
             self._mean += min(1.0, max(dt, 0.0) / self.ema_s) * (nu - self._mean)
         return agrees and not self.inconsistent
 
+    def offset_m(self, now_s: float, max_age_s: float) -> float | None:
+        """|mean innovation| (horizontal metres) while innovations keep coming (the newest at most
+        ``max_age_s`` before ``now_s``), else None."""
+        if self._mean is None or self._last_t is None or now_s - self._last_t > max_age_s:
+            return None
+        return float(np.hypot(self._mean[0], self._mean[1]))
+
     def shift(self, d_en_m: np.ndarray) -> None:
         """The alignment changed: predictions moved by −d, so innovations move by +d."""
         if self._mean is not None:
@@ -787,10 +794,7 @@ class Localizer:
         field trial: while GNSS is good, alignments are fitted to it, so this is agreement (the
         GIS registrations' and the receiver's), not accuracy."""
         with self._lock:
-            c = self.gnss_check
-            if c._mean is None or c._last_t is None or now_s - c._last_t > max_age_s:
-                return None
-            return float(np.hypot(c._mean[0], c._mean[1]))
+            return self.gnss_check.offset_m(now_s, max_age_s)
 
     def gnss_inconsistency(self) -> str | None:
         """Why GNSS is not to be trusted according to visual odometry, or None."""

@@ -35,6 +35,9 @@ TICK_S = 0.05
 CONFIRM_RESEND_S = 1.0   # source-switch commands are re-sent until the autopilot confirms them
 CONFIRM_TRIES = 5
 LATENCY_SAMPLES = 10000
+UNIX_TIME_MIN_US = 10**15       # time_usec at or above this is UNIX time (2001 on), below: time since boot
+GNSS_STAMP_MAX_AGE_S = 1.0      # a GNSS stamp older than this on arrival is not believed (arrival time used)
+BOOT_OFFSET_SLACK_S = 0.05      # ... nor one this far in the future (the boot offset carries the link's latency)
 BARO_MAX_AGE_S = 0.5     # a barometer sample (ALTITUDE / SCALED_PRESSURE) older than this is not attached to the attitude
 
 
@@ -99,6 +102,22 @@ class Bridge:
         self._gnss_msg = "GPS2_RAW" if (mav_cfg.autopilot == "ardupilot" and mav_cfg.output == "gps_input" and mav_cfg.gps_id == 0) else "GPS_RAW_INT"
         if mav_cfg.autopilot == "px4" and mav_cfg.output in emitters.LOCAL_OUTPUTS and mav_cfg.rate_hz < 20:
             log.warning("mavlink.rate_hz=%g: PX4 external vision wants >= 20 Hz (drops samples > 200 ms apart)", mav_cfg.rate_hz)
+
+    def _gnss_time(self, time_usec: int, now: float) -> float:
+        """When a receiver solution was valid, on our clock. PX4 and ArduPilot stamp GPS_RAW_INT /
+        GPS2_RAW with the autopilot's boot time of the fix (µs; MAVLink also allows UNIX time, told
+        apart by size): carried over with SYSTEM_TIME's boot offset, it removes the stream's and
+        the link's delay (ArduPilot sends a solution at its next stream tick: up to 1/rate late,
+        1–2 m at 10 m/s for a 5 Hz stream). Then ``gnss_delay_s`` earlier, the receiver's own
+        latency. The arrival time stands in when the offset is not known yet or the stamp is
+        implausible (in the future, or older than GNSS_STAMP_MAX_AGE_S)."""
+        t = now
+        off = self._stats.boot_offset_s
+        if off is not None and 0 < time_usec < UNIX_TIME_MIN_US:
+            t_fix = time_usec / 1e6 + off
+            if now - GNSS_STAMP_MAX_AGE_S <= t_fix <= now + BOOT_OFFSET_SLACK_S:
+                t = min(t_fix, now)
+        return t - self.cfg.gnss_delay_s
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> "Bridge":
@@ -228,7 +247,7 @@ class Bridge:
                 self._on_link_up(msg)
             self._last_hb_rx_s = now
         elif t == self._gnss_msg:
-            sample = sample_from_gps_raw(msg, now)
+            sample = sample_from_gps_raw(msg, self._gnss_time(msg.time_usec, now))
             with self._lock:
                 self.monitor.on_sample(sample)
             if self._on_gnss is not None:

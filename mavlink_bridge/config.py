@@ -40,6 +40,9 @@ class MavlinkConfig(BaseModel):
     ekf_source_set_extnav: int = Field(2, ge=1, le=3, description="ArduPilot EKF3 source set whose POSXY is ExternalNav (6)")
     px4_gps_ctrl: int = Field(7, ge=0, le=15, description="PX4 EKF2_GPS_CTRL restored at hand-back (the bridge sets 0 on takeover)")
     reconnect_max_s: float = Field(8.0, gt=0, description="longest back-off between reconnect attempts (serial/TCP)")
+    gnss_delay_s: float = Field(0.0, ge=0.0, le=1.0, description="the receiver's own latency before the autopilot "
+                                "stamps a solution (what its EKF assumes: ArduPilot GPS_DELAY_MS, PX4 EKF2_GPS_DELAY, in s): "
+                                "GNSS positions are dated this much before the autopilot's stamp")
     gnss_antenna_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="antenna of the GNSS receiver the autopilot reports, from the body origin, FRD metres "
         "(ArduPilot GPS_POS1_X/Y/Z, PX4 EKF2_GPS_POS_X/Y/Z): GNSS fits carry it to the camera along the attitude")

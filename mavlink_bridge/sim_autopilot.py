@@ -88,10 +88,13 @@ class _Pos:
 class SimAutopilot:
     def __init__(self, personality: str, port: int = 0, *, sysid: int = 1, compid: int = 1,
                  ekf_start_s: float | None = None, params: dict | None = None,
-                 signing_key: bytes | None = None, clock=time.monotonic):
+                 signing_key: bytes | None = None, clock=time.monotonic, gnss_report_lag_s: float = 0.0):
         if personality not in PERSONALITIES:
             raise ValueError(f"personality must be one of {PERSONALITIES}, got {personality!r}")
         self.personality, self.sysid, self.compid, self.clock = personality, sysid, compid, clock
+        # GPS_RAW_INT's time_usec is the boot time the fix was stamped at (PX4, ArduPilot); a real
+        # autopilot sends it at its next stream tick, this much later
+        self.gnss_report_lag_s = gnss_report_lag_s
         self.params = dict(DEFAULT_PARAMS[personality], **(params or {}))
         self.ekf_start_s = ekf_start_s if ekf_start_s is not None else (3.5 if personality == "ardupilot" else 1.0)
         self._conn = open_connection(f"udpin:127.0.0.1:{port}", 0, sysid, compid, signing_key)
@@ -215,9 +218,9 @@ class SimAutopilot:
             return 0 if not math.isfinite(x) else round(x * 1000)
         vel = cm(math.hypot(s.vel_ned_mps[0], s.vel_ned_mps[1])) if s.vel_ned_mps else 65535
         cog = cm(s.cog_deg) if s.cog_deg is not None else 65535
-        now = self.clock()
+        boot_us = int(max(0.0, self.clock() - self.gnss_report_lag_s - self._t0) * 1e6)
         return self._conn.mav.gps_raw_int_encode(
-            int(now * 1e6), int(s.fix_type), round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), mm(s.alt_msl_m),
+            boot_us, int(s.fix_type), round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), mm(s.alt_msl_m),
             cm(s.eph), cm(s.epv), vel, cog, s.satellites, mm(s.h_ellipsoid_m), mm(s.h_acc_m), mm(s.v_acc_m), 0, 0, 0)
 
     # ---- ArduPilot GPS instances -----------------------------------------------------------
@@ -511,7 +514,7 @@ class SimAutopilot:
             if self._due(mavlink.MAVLINK_MSG_ID_GPS2_RAW, now):  # the MAVLink GPS instance, fix 0 until fed
                 m = self._mgps or {"lat": 0.0, "lon": 0.0, "alt": 0.0, "hdop": 655.35, "sats": 0}
                 fix, _ = self._mgps_usable(now)
-                out.append(mav.gps2_raw_encode(int(now * 1e6), fix, round(m["lat"] * 1e7), round(m["lon"] * 1e7), round(m["alt"] * 1000),
+                out.append(mav.gps2_raw_encode(int((now - self._t0) * 1e6), fix, round(m["lat"] * 1e7), round(m["lon"] * 1e7), round(m["alt"] * 1000),
                                                min(65534, round(m["hdop"] * 100)), 65535, 65535, 65535, m["sats"], 0, 0))
             if self._due(mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, now):
                 flags = (mavlink.EKF_POS_HORIZ_ABS if est.valid and est.source != "dead_reckoning" else 0) | (32768 if self._glitch else 0)

@@ -299,3 +299,33 @@ def test_bridge_attaches_the_barometric_altitude_to_the_attitude(rigs, personali
     after = baro(1.5)
     assert before and after, "no ALTITUDE reached the attitude"
     assert 9.0 < sum(after) / len(after) - sum(before) / len(before) < 11.0
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.1])
+def test_gnss_solutions_are_dated_by_the_autopilots_stamp_not_their_arrival(delay_s):
+    """ArduPilot and PX4 stamp GPS_RAW_INT with the boot time of the fix and send it at a later
+    stream tick: the bridge dates each solution by that stamp (through SYSTEM_TIME's boot offset),
+    less the receiver's own latency ``gnss_delay_s``, not by when it arrived (0.15 s late here:
+    1.2 m along the track at 8 m/s)."""
+    lag_s = 0.15
+    sim = SimAutopilot("ardupilot", ekf_start_s=0.2, gnss_report_lag_s=lag_s).start()
+    bridge = Bridge(MavlinkConfig(connect=f"udpout:127.0.0.1:{sim.port}", gnss_delay_s=delay_s), SwitchingConfig()).start()
+    flight = Flight()
+    try:
+        t0, dated = time.monotonic(), []
+        while time.monotonic() - t0 < 4.0:
+            now = time.monotonic()
+            sim.feed_gnss(flight.gnss(now, now - t0))
+            deadline = now + 0.15
+            while time.monotonic() < deadline:
+                s = bridge.gnss_status().sample
+                if s is not None and s.t_s != (dated[-1][1] if dated else None):
+                    dated.append((now, s.t_s))
+                    break
+                time.sleep(0.005)
+            time.sleep(max(0.0, 0.2 - (time.monotonic() - now)))
+    finally:
+        bridge.close()
+        sim.close()
+    late = [t_feed - t_s for t_feed, t_s in dated[-8:]]  # after SYSTEM_TIME (1 Hz) gave the boot offset
+    assert len(late) == 8 and all(abs(x - (lag_s + delay_s)) < 0.01 for x in late), late

@@ -104,11 +104,11 @@ class Truth:
     T_enu_cam: np.ndarray
     v_enu: np.ndarray
     p_ecef: np.ndarray          # camera centres
-    lat: np.ndarray
-    lon: np.ndarray
+    lat: np.ndarray             # lat / lon / h_ell / h_msl / p_body_ecef: the body origin (what a fix
+    lon: np.ndarray             # reports, truth.csv's position)
     h_ell: np.ndarray
     h_msl: np.ndarray
-    p_body_ecef: np.ndarray     # body origins (what a fix reports; truth.csv's position)
+    p_body_ecef: np.ndarray
 
     def pose(self, i: int) -> TruthPose:
         return TruthPose(float(self.t_s[i]), i, self.T_enu_cam[i], self.T_enu_body[i], self.p_ecef[i],
@@ -198,9 +198,8 @@ def make_truth(traj: Trajectory, origin: LocalFrame, T_body_cam: np.ndarray, t_s
     T_enu_body[:, :3, :3] = R
     T_enu_body[:, :3, 3] = p
     T_enu_cam = T_enu_body @ T_body_cam
-    c = T_enu_cam[:, :3, 3]
-    p_ecef = origin.enu_to_ecef(c)
-    lat, lon, h = origin.enu_to_geodetic(c)
+    p_ecef = origin.enu_to_ecef(T_enu_cam[:, :3, 3])
+    lat, lon, h = origin.enu_to_geodetic(p)
     return Truth(t_s, T_enu_body, T_enu_cam, v, p_ecef, lat, lon, h, ellipsoid_to_msl(lat, lon, h), origin.enu_to_ecef(p))
 
 

@@ -14,9 +14,9 @@ class TruthPose:
     """Ground truth of one frame.
 
     T_enu_cam / T_enu_body: 4x4 camera→ENU and body(FRD)→ENU at the site origin. p_ecef_m: (3,)
-    camera centre in ECEF; lat/lon/h_ellipsoid_m/h_msl_m (EGM96) of the camera centre.
-    v_enu_mps: (3,) vehicle velocity in ENU. p_body_ecef_m: (3,) the body origin in ECEF, the point
-    a GlobalFix reports (and truth.csv holds).
+    camera centre in ECEF. lat/lon/h_ellipsoid_m/h_msl_m (EGM96) and p_body_ecef_m (3,): the body
+    origin, the point a GlobalFix reports (and truth.csv holds). v_enu_mps: (3,) vehicle velocity
+    in ENU.
     """
 
     t_s: float
