@@ -93,7 +93,8 @@ class SimAutopilot:
             raise ValueError(f"personality must be one of {PERSONALITIES}, got {personality!r}")
         self.personality, self.sysid, self.compid, self.clock = personality, sysid, compid, clock
         # GPS_RAW_INT's time_usec is the boot time the fix was stamped at (PX4, ArduPilot); a real
-        # autopilot sends it at its next stream tick, this much later
+        # autopilot sends it at its next stream tick: here each fed solution is sent at once but
+        # stamped this much earlier (feed solutions valid at that earlier time)
         self.gnss_report_lag_s = gnss_report_lag_s
         self.params = dict(DEFAULT_PARAMS[personality], **(params or {}))
         self.ekf_start_s = ekf_start_s if ekf_start_s is not None else (3.5 if personality == "ardupilot" else 1.0)

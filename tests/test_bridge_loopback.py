@@ -315,7 +315,7 @@ def test_gnss_solutions_are_dated_by_the_autopilots_stamp_not_their_arrival(dela
         t0, dated = time.monotonic(), []
         while time.monotonic() - t0 < 4.0:
             now = time.monotonic()
-            sim.feed_gnss(flight.gnss(now, now - t0))
+            sim.feed_gnss(flight.gnss(now - lag_s, now - lag_s - t0))  # valid at its stamp, sent lag_s later
             deadline = now + 0.15
             while time.monotonic() < deadline:
                 s = bridge.gnss_status().sample
