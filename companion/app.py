@@ -165,6 +165,7 @@ def summarize(run: RunLog, *, name: str) -> dict:
     return {
         "name": name,
         "frames": n,
+        "frames_with_truth": len(run.truth_ecef_m),
         "tracking_ratio": float(np.mean([r.pose.state.has_pose for r in run.records])) if n else None,
         "fix_ratio_all": float(np.mean([r.fix is not None for r in run.records])) if n else None,
         "fix_ratio_after_takeover": float(np.mean([r.fix is not None for r in frames_after])) if frames_after else None,
@@ -381,7 +382,8 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     files = export_gis(gis_world, out_dir / "gis", seed=opts.seed)
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
     flight = fly_sim(cfg, scenario.steps(), scenario.n_frames, scenario.camera, scenario.T_body_cam, model,
-                     autopilot=opts.autopilot, progress=progress, repeatable=opts.repeatable)
+                     autopilot=opts.autopilot, progress=progress, repeatable=opts.repeatable,
+                     p_body_gnss_m=scenario.spec.gnss_antenna_m)
     run, received = flight.run, flight.received
     summary = summarize(run, name=f"demo ({opts.scenario}, {opts.receiver} receiver, {opts.autopilot})")
     summary["autopilot"] = {

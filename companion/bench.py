@@ -204,7 +204,7 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
     f = fly_sim(cfg, _window(scenario, start), n_frames, scenario.camera, scenario.T_body_cam, model, progress=progress,
-                repeatable=repeatable)
+                repeatable=repeatable, p_body_gnss_m=scenario.spec.gnss_antenna_m)
     wall = time.perf_counter() - t0
     res = sampler.stop()
     br = BenchRun(name, f.run, scenario.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,

@@ -168,7 +168,7 @@ def write_dataset(scenario, out_dir: Path | str, progress: bool = True, image_ex
                 "crs": files.crs},
     }, sort_keys=False))
     write_calibration(out / "camera.yaml", scenario.camera)
-    write_mount(out / "mount.yaml", scenario.T_body_cam)
+    write_mount(out / "mount.yaml", scenario.T_body_cam, scenario.spec.gnss_antenna_m)
     (out / "dataset.yaml").write_text(yaml.safe_dump({
         "format_version": FORMAT_VERSION, "name": scenario.name, "fps": float(scenario.fps),
         "n_frames": int(scenario.n_frames), "generator": f"terraslam sim (seed {scenario.seed})",

@@ -78,7 +78,7 @@ def test_a_replay_with_gnss_denied_is_judged_against_the_withheld_gnss(tmp_path)
     events = [text for _, text in summary["switch_events"]]
     assert events[0] == "GNSS lost: no 3D fix (fix_type 1)" and events[-1] == "GNSS good again"
     assert summary["gnss_denial"]["frames"] == len(denied) == 40
-    assert summary["after_takeover"]["n"] == 0, "no truth: nothing is judged against it"
+    assert summary["after_takeover"]["n"] == 0 and summary["frames_with_truth"] == 0, "no truth: nothing is judged against it"
 
     fixes = list(csv.DictReader(open(tmp_path / "out" / "trajectory.csv")))
     during = [f for f in fixes if t0 + 13.0 <= float(f["t_s"]) < t0 + 17.0]
@@ -186,6 +186,7 @@ def test_replay_of_a_dataset_whose_gis_model_moved_takes_it_from_gis_model(tmp_p
 
     ds = tmp_path / "ds"
     write_dataset(make_scenario("nominal", seed=3, n_frames=12), ds, progress=False)
+    (ds / "truth.csv").unlink()  # a recording has none
     site = yaml.safe_load((ds / "site.yaml").read_text())
     model = tmp_path / "elsewhere" / "model.ply"
     model.parent.mkdir()
@@ -201,4 +202,5 @@ def test_replay_of_a_dataset_whose_gis_model_moved_takes_it_from_gis_model(tmp_p
     assert r.exit_code == 2 and "nowhere.ply does not exist" in r.output
     r = runner.invoke(app, ["replay", str(ds), "--out", str(tmp_path / "o3"), "--gis-model", str(model)])
     assert r.exit_code == 0, r.output
+    assert "none: the dataset has no truth.csv" in r.output and "3D error, all fixes" not in r.output
     assert json.loads((tmp_path / "o3" / "report.json").read_text())["frames"] == 12

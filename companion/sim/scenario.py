@@ -42,6 +42,7 @@ class ScenarioSpec:
     motion_blur: bool = False
     exposure_s: float = 1 / 120
     gnss: GnssSpec = GnssSpec()
+    gnss_antenna_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the receiver's antenna from the body origin, FRD m
     attitude: AttitudeNoise = AttitudeNoise()
     stale: StaleSpec = StaleSpec()
     max_duration_s: float | None = None
@@ -237,9 +238,10 @@ def make_scenario(name: str = "nominal", seed: int = 0, n_frames: int | None = N
     truth = make_truth(traj, origin, T_body_cam, t_frames)
     t_end = t_frames[-1]
     tg = np.arange(0, t_end + 1e-9, 1 / spec.gnss.rate_hz)
-    pg, vg, _, _ = traj.state(tg)
+    pg, vg, _, Rg = traj.state(tg)
     h_agl = pg[:, 2] - world.ground_height_m(pg[:, 0], pg[:, 1])
-    gnss = simulate_gnss(spec.gnss, origin, tg, pg, vg, h_agl, seed=seed + 1)
+    antenna = pg + Rg @ np.asarray(spec.gnss_antenna_m, float)  # the receiver solves for its antenna
+    gnss = simulate_gnss(spec.gnss, origin, tg, antenna, vg, h_agl, seed=seed + 1)
     ta = np.arange(0, t_end + 1e-9, 1 / spec.attitude.rate_hz)
     pa, _, _, Ra = traj.state(ta)
     la, lo, ha = origin.enu_to_geodetic(pa)
