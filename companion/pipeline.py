@@ -372,11 +372,11 @@ def _adopt_tuner(tuner: FineTuner) -> None:
 
 
 def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float,
-                        camera_h_ell_m: float | None = None) -> tuple[Alignment | None, str, float, float]:
+                        camera_h_ell_m: float | None = None, camera_h_sigma_m: float | None = None) -> tuple[Alignment | None, str, float, float]:
     """(alignment or None, reason, wall ms, CPU ms of the worker process) of one registration."""
     t0, c0 = time.perf_counter(), time.process_time()
     reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
-                          map_id=initial.map_id, camera_h_ell_m=camera_h_ell_m)
+                          map_id=initial.map_id, camera_h_ell_m=camera_h_ell_m, camera_h_sigma_m=camera_h_sigma_m)
     return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
@@ -418,11 +418,11 @@ class FineTuneWorker:
         self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
     def submit(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray, t_s: float,
-               camera_h_ell_m: float | None = None) -> bool:
+               camera_h_ell_m: float | None = None, camera_h_sigma_m: float | None = None) -> bool:
         with self._lock:
             if self.busy.is_set():
                 return False
-            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m)
+            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m, camera_h_sigma_m)
             self.busy.set()
         self._hand_over(t_s, fut, self._done)
         return True
@@ -495,6 +495,7 @@ def _baro_m(prior: AttitudePrior | None) -> float | None:
 
 
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
+BARO_NOISE_M = 0.3       # barometric height 1-σ beside the offset's (noise 0.15 m, drift 0.02 m/√s over a minute)
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
@@ -542,6 +543,7 @@ class Localizer:
         self._frames_since_tune = 0
         self._frames_since_boot = 0
         self._baro_offset_m: float | None = None  # ellipsoidal height − barometric altitude (learned from GNSS)
+        self._baro_offset_sigma_m: float | None = None  # ... and the GNSS vertical 1-σ it was learned from
         self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
         self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
@@ -748,8 +750,11 @@ class Localizer:
                 if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
                     well = snapshot.parallax_deg >= self.min_parallax_deg
                     points, ids = points[well], ids[well]
+                h_cam = self._camera_h_ell_m(item.prior)
+                # its 1-σ: the GNSS vertical accuracy the offset was learned from, and the barometer's own
+                h_sigma = None if h_cam is None else math.hypot(self._baro_offset_sigma_m, BARO_NOISE_M)
                 if len(points) >= self.min_points and self.worker.submit(
-                        points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, self._camera_h_ell_m(item.prior)):
+                        points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, h_cam, h_sigma):
                     self._frames_since_tune = 0
                     crop = self._tuner.in_crop(points, alignment.T_ecef_slam, pose.T_slam_cam[:3, 3])
                     order = np.argsort(ids[crop], kind="stable")
@@ -771,6 +776,8 @@ class Localizer:
             return
         off = float(ecef_to_geodetic(pair.p_ecef)[2]) - baro
         self._baro_offset_m = off if self._baro_offset_m is None else self._baro_offset_m + BARO_OFFSET_GAIN * (off - self._baro_offset_m)
+        s = pair.v_acc_m
+        self._baro_offset_sigma_m = s if self._baro_offset_sigma_m is None else self._baro_offset_sigma_m + BARO_OFFSET_GAIN * (s - self._baro_offset_sigma_m)
 
     def _camera_h_ell_m(self, prior: AttitudePrior | None) -> float | None:
         """The camera's ellipsoidal height from the barometer (the offset is learned from pairs,

@@ -716,3 +716,27 @@ def test_a_registration_follows_its_points_when_local_mapping_moves_them(city):
     assert max(abs(err[t] - before[-1]) for t in (1.5, 1.8, 2.4)) < 0.05, err
     err_off, _ = _flown(city, D, local_map=False)
     assert min(err_off[t] for t in (1.5, 1.8, 2.4)) > err_off[1.4] + 1.0, err_off
+
+
+def test_the_barometric_height_is_a_measurement_of_the_registration_height(city):
+    """The barometric camera height (``camera_h_ell_m`` with its 1-σ ``camera_h_sigma_m``) enters the
+    update as a measurement of the up translation at the camera: told the camera is 0.6 m above
+    where the cloud puts it with a σ far below the registration's, the camera ends there; with a
+    vague σ, where the registration alone puts it."""
+    c = np.array([20.0, -10, 0])
+    cloud = slam_like_cloud(city, c, 60, 800, noise_m=0.3, seed=3)
+    cam = c + np.array([0.0, 0.0, 60.0])
+    prior = _prior_about(cam, (0.5, 0.0, 0.3), drot_deg=(0, 0, 0), sigma_t_m=1.0, sigma_rot_deg=0.5)
+    h_true = float(ecef_to_geodetic(T_ECEF_SLAM.apply(_slam(cam)))[2])
+    tuner = FineTuner(city)
+
+    def up_err_m(**baro) -> float:
+        reg = tuner.register(_slam(cloud), prior, 1.0, 0, center_slam=_slam(cam), **baro)
+        assert reg.alignment is not None, reg.reason
+        return float(ecef_to_geodetic(reg.alignment.T_ecef_slam.apply(_slam(cam)))[2]) - h_true
+
+    alone = up_err_m()
+    told = up_err_m(camera_h_ell_m=h_true + alone + 0.6, camera_h_sigma_m=0.01)
+    vague = up_err_m(camera_h_ell_m=h_true + alone + 0.6, camera_h_sigma_m=100.0)
+    assert abs(told - (alone + 0.6)) < 0.05, (alone, told)
+    assert abs(vague - alone) < 0.01, (alone, vague)
