@@ -17,10 +17,9 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from companion.config import AppConfig
-from companion.evaluate import FixErrors, GnssReference, fix_errors, stats, write_csv, write_geojson, write_report, write_tum
+from companion.evaluate import FixErrors, GnssReference, fix_errors, gnss_ecef, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
 from gis.geodesy import R_NED_ENU, R_ecef_enu
@@ -311,7 +310,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             clock.advance_to(step.frame.t_s)
             for s in step.gnss:
                 ap.feed_gnss(s)
-                run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+                run.gnss_ecef_m.append((s.t_s, gnss_ecef(s), s.fix_type >= 3))
             truth = step.truth
             if truth is not None:
                 ap.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
@@ -410,12 +409,6 @@ def _wait_attitude(bridge, t_s: float, timeout_s: float = 0.05):
         time.sleep(0.001)
 
 
-def _ecef(sample) -> np.ndarray:
-    from gis.geodesy import geodetic_to_ecef
-
-    return geodetic_to_ecef(sample.lat_deg, sample.lon_deg, sample.h_ellipsoid_m)
-
-
 def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
     from gis.geodesy import LocalFrame
 
@@ -434,9 +427,7 @@ def antenna_to_body(p_antenna_ecef_m: np.ndarray, fix: GlobalFix, p_body_gnss_m:
     lever = np.asarray(p_body_gnss_m, float)
     if not lever.any() or fix.q_ned_body is None:
         return p_antenna_ecef_m
-    w, x, y, z = fix.q_ned_body
-    R_ecef_body = R_ecef_enu(fix.lat_deg, fix.lon_deg) @ R_NED_ENU.T @ Rotation.from_quat([x, y, z, w]).as_matrix()
-    return p_antenna_ecef_m - R_ecef_body @ lever
+    return p_antenna_ecef_m - R_ecef_enu(fix.lat_deg, fix.lon_deg) @ R_NED_ENU.T @ fix.R_ned_body @ lever
 
 
 def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
@@ -468,7 +459,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             if k >= n:
                 break
             for s in step.gnss:
-                run.gnss_ecef_m.append((s.t_s, _ecef(s), s.fix_type >= 3))
+                run.gnss_ecef_m.append((s.t_s, gnss_ecef(s), s.fix_type >= 3))
                 monitor.on_sample(no_fix_sample(s.t_s) if deny is not None and deny.covers(s.t_s) else s)
             status = monitor.status(step.frame.t_s)
             good = status.quality is GnssQuality.GOOD

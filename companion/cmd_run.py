@@ -42,9 +42,10 @@ def _print_summary(summary: dict, out: Path) -> None:
     t.add_row("tracking ratio", fmt(summary["tracking_ratio"]))
     t.add_row("GNSS lost → we took over at", fmt(summary["takeover_t_s"], " s"))
     t.add_row("fix ratio after takeover", fmt(summary["fix_ratio_after_takeover"]))
-    if not summary.get("frames_with_truth", 1):
+    with_truth = (("all fixes", "all_fixes"), ("after takeover", "after_takeover")) if summary.get("frames_with_truth", 1) else ()
+    if not with_truth:
         t.add_row("errors against the truth", "none: the dataset has no truth.csv")
-    for label, key in (("all fixes", "all_fixes"), ("after takeover", "after_takeover")) if summary.get("frames_with_truth", 1) else ():
+    for label, key in with_truth:
         ge = summary[key]["global_error_m"]
         t.add_row(f"3D error, {label} (mean / P99)", f"{fmt(ge['mean'])} / {fmt(ge['p99'])} m  (n={summary[key]['n']})")
         he = summary[key]["horizontal_error_m"]

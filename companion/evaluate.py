@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.types import GlobalFix
+from mavlink_bridge.monitor import h_acc_of, h_ellipsoid_of
 
 
 def stats(x: np.ndarray) -> dict[str, float | None]:
@@ -71,6 +72,11 @@ class FixErrors:
         return out
 
 
+def gnss_ecef(sample) -> np.ndarray:
+    """ECEF metres of a GnssSample (its ellipsoidal height as mavlink_bridge.monitor.h_ellipsoid_of)."""
+    return geodetic_to_ecef(sample.lat_deg, sample.lon_deg, h_ellipsoid_of(sample))
+
+
 #: A withheld GNSS track stands for the vehicle's position at a fix only between two of its 3D
 #: solutions at most this far apart (1 Hz receivers included): over 1 s at 15 m/s, a turn of
 #: 30 °/s bends the path ~0.2 m off the chord, within a DGPS solution's own error.
@@ -91,14 +97,13 @@ class GnssReference:
 
     @classmethod
     def from_samples(cls, samples) -> "GnssReference":
-        """From GnssSample-like values; solutions without a 3D fix are left out."""
+        """From GnssSamples; solutions without a 3D fix are left out. Height and accuracy as the
+        GNSS monitor reads them (MSL + EGM96 without alt_ellipsoid; HDOP × UERE without h_acc)."""
         good = [s for s in samples if s.fix_type >= 3]
         if not good:
             return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0))
-        p = geodetic_to_ecef(np.array([s.lat_deg for s in good]), np.array([s.lon_deg for s in good]),
-                             np.array([s.h_ellipsoid_m for s in good]))
-        return cls(np.array([s.t_s for s in good], float), np.asarray(p, float).reshape(-1, 3),
-                   np.array([s.h_acc_m for s in good], float))
+        return cls(np.array([s.t_s for s in good], float), np.stack([gnss_ecef(s) for s in good]),
+                   np.array([h_acc_of(s) for s in good], float))
 
     def at(self, t_s: float) -> tuple[np.ndarray, float] | None:
         """(ECEF position, 1-σ h_acc) at t_s, linear between the two solutions around it (the
@@ -161,9 +166,7 @@ def write_tum(fixes: list[GlobalFix], origin: LocalFrame, path: Path) -> None:
         for x in fixes:
             p = origin.ecef_to_enu(x.p_ecef_m)
             if x.q_ned_body is not None:
-                w, qx, qy, qz = x.q_ned_body
-                R = R_enu_ned @ Rotation.from_quat([qx, qy, qz, w]).as_matrix()
-                qx, qy, qz, w = Rotation.from_matrix(R).as_quat()
+                qx, qy, qz, w = Rotation.from_matrix(R_enu_ned @ x.R_ned_body).as_quat()
             else:
                 qx, qy, qz, w = 0.0, 0.0, 0.0, 1.0
             f.write(f"{x.t_s:.6f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {qx:.6f} {qy:.6f} {qz:.6f} {w:.6f}\n")

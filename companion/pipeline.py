@@ -42,11 +42,11 @@ from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
-from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
+from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
 from gis.sim3 import Sim3, umeyama
 from gis.types import Alignment, AlignmentSource, GlobalFix
-from mavlink_bridge.monitor import h_acc_of
+from mavlink_bridge.monitor import h_acc_of, h_ellipsoid_of
 from mavlink_bridge.types import GnssSample, GpsFixType
 from slam.geometry import gravity_cam_from_roll_pitch
 from slam.types import AttitudePrior, Frame, SlamPose
@@ -300,9 +300,7 @@ class BootstrapCollector:
         if sample.t_s == self._last_gnss_t:  # one pair per receiver solution
             return None
         self._last_gnss_t = sample.t_s
-        h_ell = sample.h_ellipsoid_m  # GPS_RAW_INT's alt_ellipsoid is optional: else MSL + EGM96
-        if not math.isfinite(h_ell):
-            h_ell = float(msl_to_ellipsoid(sample.lat_deg, sample.lon_deg, sample.alt_msl_m))
+        h_ell = h_ellipsoid_of(sample)
         h_acc = h_acc_of(sample)
         v_acc = sample.v_acc_m if math.isfinite(sample.v_acc_m) and sample.v_acc_m > 0 else 1.6 * h_acc
         if not all(math.isfinite(x) for x in (sample.lat_deg, sample.lon_deg, h_ell, h_acc, v_acc)):
@@ -501,6 +499,11 @@ RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too 
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
 FOLLOW_EVENT_M = 0.3  # ... and goes into the alignment timeline from this much on
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
+
+
+def _baro_ema(prev: float | None, value: float) -> float:
+    """The barometer offset's running mean (and its σ's): BARO_OFFSET_GAIN per trusted pair."""
+    return value if prev is None else prev + BARO_OFFSET_GAIN * (value - prev)
 
 
 @dataclass
@@ -775,9 +778,8 @@ class Localizer:
         if baro is None or abs(prior.t_s - pair.t_s) > 0.2:
             return
         off = float(ecef_to_geodetic(pair.p_ecef)[2]) - baro
-        self._baro_offset_m = off if self._baro_offset_m is None else self._baro_offset_m + BARO_OFFSET_GAIN * (off - self._baro_offset_m)
-        s = pair.v_acc_m
-        self._baro_offset_sigma_m = s if self._baro_offset_sigma_m is None else self._baro_offset_sigma_m + BARO_OFFSET_GAIN * (s - self._baro_offset_sigma_m)
+        self._baro_offset_m = _baro_ema(self._baro_offset_m, off)
+        self._baro_offset_sigma_m = _baro_ema(self._baro_offset_sigma_m, pair.v_acc_m)
 
     def _camera_h_ell_m(self, prior: AttitudePrior | None) -> float | None:
         """The camera's ellipsoidal height from the barometer (the offset is learned from pairs,

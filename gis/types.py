@@ -10,6 +10,7 @@ import enum
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from gis.sim3 import Sim3
 
@@ -83,3 +84,11 @@ class GlobalFix:
     yaw_deg: float | None = None
     q_ned_body: np.ndarray | None = None
     reset_counter: int = 0
+
+    @property
+    def R_ned_body(self) -> np.ndarray | None:
+        """q_ned_body as a 3x3 rotation (body FRD → NED), or None."""
+        if self.q_ned_body is None:
+            return None
+        w, x, y, z = self.q_ned_body
+        return Rotation.from_quat([x, y, z, w]).as_matrix()

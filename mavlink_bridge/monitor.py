@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gis.geodesy import LocalFrame
+from gis.geodesy import LocalFrame, msl_to_ellipsoid
 from gis.types import GlobalFix
 from mavlink_bridge.config import SwitchingConfig
 from mavlink_bridge.types import GnssQuality, GnssSample, GnssStatus, GpsFixType
@@ -64,6 +64,13 @@ def sample_from_gps_raw(msg, t_s: float) -> GnssSample:
         vel_ned_mps=vel,
         cog_deg=None if msg.cog == 65535 else msg.cog / 100.0,
     )
+
+
+def h_ellipsoid_of(sample: GnssSample) -> float:
+    """Ellipsoidal height of a solution: GPS_RAW_INT's alt_ellipsoid is optional, else MSL + EGM96."""
+    if math.isfinite(sample.h_ellipsoid_m):
+        return sample.h_ellipsoid_m
+    return float(msl_to_ellipsoid(sample.lat_deg, sample.lon_deg, sample.alt_msl_m))
 
 
 def h_acc_of(sample: GnssSample, uere_m: float = 2.0) -> float:

@@ -129,7 +129,10 @@ def test_replay_refuses_a_denial_it_cannot_run(tmp_path):
 
 
 def test_the_gnss_reference_interpolates_only_between_close_3d_solutions():
+    from dataclasses import replace
+
     import numpy as np
+    import pytest
 
     from companion.evaluate import REFERENCE_MAX_GAP_S, GnssReference
     from mavlink_bridge.types import GnssSample, GpsFixType, no_fix_sample
@@ -147,6 +150,9 @@ def test_the_gnss_reference_interpolates_only_between_close_3d_solutions():
     assert ref.at(0.2)[1] == 0.7
     assert ref.at(-0.1) is None and ref.at(0.2 + gap + 0.1) is None
     assert ref.at(0.3) is None, "across a gap longer than REFERENCE_MAX_GAP_S"
+    # GPS_RAW_INT without alt_ellipsoid and h_acc: MSL + EGM96, HDOP × UERE (as the GNSS monitor reads it)
+    bare = GnssReference.from_samples([replace(sol(0.0, 47.0), h_ellipsoid_m=float("nan"), h_acc_m=float("nan"))])
+    assert np.all(np.isfinite(bare.p_ecef_m)) and bare.h_acc_m[0] == pytest.approx(0.8 * 2.0)
 
 
 def test_a_reference_antenna_is_carried_to_the_body_origin_along_the_fix_attitude():

@@ -468,15 +468,9 @@ class FineTuner:
                 # and the error grew to 4 m. docs/BENCHMARKS.md, "Disagreeing registrations are fused, wider".
                 P_post = nis / 7.0 * P_post
             if camera_h_sigma_m is not None and camera_h_ell_m is not None and math.isfinite(camera_h_ell_m):
-                # the barometer's camera height, a measurement of the up translation at the crop
-                # centre (the camera at 0 in these coordinates): x[5] = up_baro + v, v ~ N(0, σ²)
-                lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c[None])[0])
-                up_baro = float(self._T_enu_ecef.apply(geodetic_to_ecef(float(lat), float(lon), camera_h_ell_m)[None])[0][2]) - c[2]
-                Sb = P_post[5, 5] + camera_h_sigma_m ** 2
-                Kb = P_post[:, 5] / Sb
-                x_post = x_post + Kb * (up_baro - x_post[5])
-                P_post = P_post - np.outer(Kb, P_post[5, :])
-                P_post = 0.5 * (P_post + P_post.T)
+                # the barometer's camera height measures the up translation at the crop centre
+                # (the camera, at 0 in these coordinates)
+                x_post, P_post = _scalar_update(x_post, P_post, 5, self._up_baro_m(c, camera_h_ell_m), camera_h_sigma_m ** 2)
         sig_post = float(np.sqrt(np.linalg.eigvalsh(P_post[3:6, 3:6])[-1]))
         jump = float(np.linalg.norm(icp.T.t))
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
@@ -537,9 +531,12 @@ class FineTuner:
         same coordinates."""
         if not math.isfinite(camera_h_ell_m):
             return ScaleCheck(float("nan"), float("nan"), float("nan"), 0, tolerance)
+        return nadir_scale_ratio(src, crop, c, self._up_baro_m(c, camera_h_ell_m), radius_m, tolerance)
+
+    def _up_baro_m(self, c: np.ndarray, camera_h_ell_m: float) -> float:
+        """The barometric camera height (ellipsoidal) in ENU coordinates centred on the camera at c."""
         lat, lon, _ = ecef_to_geodetic(self._T_ecef_enu.apply(c[None])[0])
-        up_baro = float(self._T_enu_ecef.apply(geodetic_to_ecef(float(lat), float(lon), camera_h_ell_m)[None])[0][2]) - c[2]
-        return nadir_scale_ratio(src, crop, c, up_baro, radius_m, tolerance)
+        return float(self._T_enu_ecef.apply(geodetic_to_ecef(float(lat), float(lon), camera_h_ell_m)[None])[0][2]) - c[2]
 
     def _prior_at(self, initial: Alignment, c_enu: np.ndarray, T_enu_slam: Sim3, cfg: AlignmentConfig) -> np.ndarray | None:
         """7x7 covariance of the prior's [rot, trans, log-scale] error at the crop centre (model ENU
@@ -688,6 +685,14 @@ def _update(z: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
     K = P @ np.linalg.inv(S)
     Pp = (np.eye(len(P)) - K) @ P
     return K @ z, 0.5 * (Pp + Pp.T), nis
+
+
+def _scalar_update(x: np.ndarray, P: np.ndarray, i: int, z: float, var: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update of state x ~ N(x, P) with one measurement of its component i:
+    z = x_i + v, v ~ N(0, var). K = P e_i / (P_ii + var), x⁺ = x + K (z − x_i), P⁺ = P − K P_i·."""
+    K = P[:, i] / (P[i, i] + var)
+    Pp = P - np.outer(K, P[i, :])
+    return x + K * (z - x[i]), 0.5 * (Pp + Pp.T)
 
 
 def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> Sim3:
