@@ -95,15 +95,15 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     frame = LocalFrame(float(lat), float(lon), float(h))  # ENU at the centroid: info axes and moments
     p_enu = frame.ecef_to_enu(p_ecef)
     w_pair = np.ones(n)  # the estimate's pair weights, mean 1
-    n_eff = float(n)
+    n_eff = n_eff_rigid = float(n)
     if t_pairs_s is not None:
         t_pairs_s = np.asarray(t_pairs_s, float)
         span_s = float(t_pairs_s.max() - t_pairs_s.min())
+        n_eff = n_eff_rigid = float(np.clip(span_s / gnss_corr_time_s + 1.0, 1.0, n))
         if recency_tau_s is not None:
             w_pair = np.exp(-(t_pairs_s.max() - t_pairs_s) / recency_tau_s)
             w_pair *= n / w_pair.sum()
-            span_s = min(span_s, 2.0 * recency_tau_s)
-        n_eff = float(np.clip(span_s / gnss_corr_time_s + 1.0, 1.0, n))
+            n_eff = float(np.clip(min(span_s, 2.0 * recency_tau_s) / gnss_corr_time_s + 1.0, 1.0, n))
     if R_ecef_slam is not None:
         R_att, info_att = _attitude_rotation(frame, np.asarray(R_ecef_slam, float), n, attitude_sigma_deg)
         T = _scale_translation(p_slam, p_enu, R_att)
@@ -115,7 +115,7 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
         R_att, info_att = None, np.zeros((3, 3))
     sigma2 = sigma_gnss_m**2
     for _ in range(2):  # rigid fit, judge the residuals, refit with the noise they show
-        T, H = _gauss_newton(T, p_slam, p_enu, np.full(n, (n_eff / n) / sigma2), R_att, info_att)
+        T, H = _gauss_newton(T, p_slam, p_enu, np.full(n, (n_eff_rigid / n) / sigma2), R_att, info_att)
         res = T.apply(p_slam) - p_enu
         dof_frac = max(1.0 - (4 if R_att is not None else 7) / (3 * n), 1.0 / (3 * n))
         rmse_h = float(np.sqrt(np.mean(res[:, :2] ** 2) / dof_frac))  # per horizontal axis
