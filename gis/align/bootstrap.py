@@ -94,16 +94,12 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
     lat, lon, h = ecef_to_geodetic(p_ecef.mean(axis=0))
     frame = LocalFrame(float(lat), float(lon), float(h))  # ENU at the centroid: info axes and moments
     p_enu = frame.ecef_to_enu(p_ecef)
-    w_pair = np.ones(n)  # the estimate's pair weights, mean 1
-    n_eff = n_eff_rigid = float(n)
+    weighted = t_pairs_s is not None and recency_tau_s is not None
+    n_eff_rigid = float(n)
     if t_pairs_s is not None:
         t_pairs_s = np.asarray(t_pairs_s, float)
         span_s = float(t_pairs_s.max() - t_pairs_s.min())
-        n_eff = n_eff_rigid = float(np.clip(span_s / gnss_corr_time_s + 1.0, 1.0, n))
-        if recency_tau_s is not None:
-            w_pair = np.exp(-(t_pairs_s.max() - t_pairs_s) / recency_tau_s)
-            w_pair *= n / w_pair.sum()
-            n_eff = float(np.clip(min(span_s, 2.0 * recency_tau_s) / gnss_corr_time_s + 1.0, 1.0, n))
+        n_eff_rigid = float(np.clip(span_s / gnss_corr_time_s + 1.0, 1.0, n))
     if R_ecef_slam is not None:
         R_att, info_att = _attitude_rotation(frame, np.asarray(R_ecef_slam, float), n, attitude_sigma_deg)
         T = _scale_translation(p_slam, p_enu, R_att)
@@ -128,9 +124,13 @@ def gnss_bootstrap(p_slam: np.ndarray, p_ecef: np.ndarray, t_s: float, reset_cou
                     f"{max_rmse_factor:g} × GNSS accuracy {acc:.2f} m"
                 )
         sigma2 = max((2 * rmse_h**2 + rmse_v**2) / 3, sigma_gnss_m**2)  # white noise per axis
-    if recency_tau_s is not None and t_pairs_s is not None:
+    if weighted:
         # the estimate: the same fit with recent pairs weighing more (the consistency test above
-        # stays with the rigid fit, which a scale-drifting but sound track passes)
+        # stays with the rigid fit, which a scale-drifting but sound track passes); pair weights
+        # of mean 1, and the GNSS samples of the effective span 2τ
+        w_pair = np.exp(-(t_pairs_s.max() - t_pairs_s) / recency_tau_s)
+        w_pair *= n / w_pair.sum()
+        n_eff = float(np.clip(min(span_s, 2.0 * recency_tau_s) / gnss_corr_time_s + 1.0, 1.0, n))
         T, H = _gauss_newton(T, p_slam, p_enu, (n_eff / n) / sigma2 * w_pair, R_att, info_att)
         res = T.apply(p_slam) - p_enu
     w, V = np.linalg.eigh(H)
@@ -212,17 +212,18 @@ def _gauss_newton(T: Sim3, p_slam: np.ndarray, p_enu: np.ndarray, w: np.ndarray,
     SLAM centroid lands), as the Globalizer propagates them; returns the fit and the 7x7
     Gauss–Newton Hessian (its inverse is the covariance of [rot, trans, log-scale])."""
     H = np.zeros((7, 7))
+    wr = np.repeat(w, 3)[:, None]  # per residual row
     for _ in range(iterations):
         x = T.apply(p_slam)  # s·R·p + t, centred near the origin
         r = (x - p_enu).reshape(-1)
-        wr = np.repeat(w, 3)
         J = np.zeros((len(x), 3, 7))
         J[:, :, :3] = -_skew(x)
         J[:, :, 3:6] = np.eye(3)
         J[:, :, 6] = x
         J = J.reshape(-1, 7)
-        H = (J * wr[:, None]).T @ J
-        g = (J * wr[:, None]).T @ r
+        Jw = J * wr
+        H = Jw.T @ J
+        g = Jw.T @ r
         if R_prior is not None:
             e = Rotation.from_matrix(T.R @ R_prior.T).as_rotvec()
             H[:3, :3] += info_prior
