@@ -41,6 +41,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
+from gis.align.georef import GeorefCheck, GeorefCorrection, IcpMeasurement
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -370,15 +371,20 @@ def _adopt_tuner(tuner: FineTuner) -> None:
 
 
 def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarray, t_s: float,
-                        camera_h_ell_m: float | None = None, camera_h_sigma_m: float | None = None) -> tuple[Alignment | None, str, float, float]:
-    """(alignment or None, reason, wall ms, CPU ms of the worker process) of one registration."""
+                        camera_h_ell_m: float | None, camera_h_sigma_m: float | None,
+                        correction: GeorefCorrection | None) -> tuple[Alignment | None, str, float, float, IcpMeasurement | None]:
+    """(alignment or None, reason, wall ms, CPU ms of the worker process, the ICP's own result) of
+    one registration against the model under ``correction``."""
     t0, c0 = time.perf_counter(), time.process_time()
+    _TUNER.set_correction(correction)
     reg = _TUNER.register(points, initial, t_s=t_s, reset_counter=initial.reset_counter, center_slam=center,
                           map_id=initial.map_id, camera_h_ell_m=camera_h_ell_m, camera_h_sigma_m=camera_h_sigma_m)
-    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+    return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, reg.icp
 
 
-def _check_scale_in_worker(points: np.ndarray, alignment: Alignment, center: np.ndarray, camera_h_ell_m: float) -> ScaleCheck:
+def _check_scale_in_worker(points: np.ndarray, alignment: Alignment, center: np.ndarray, camera_h_ell_m: float,
+                           correction: GeorefCorrection | None) -> ScaleCheck:
+    _TUNER.set_correction(correction)
     return _TUNER.check_scale(points, alignment, center, camera_h_ell_m)
 
 
@@ -390,7 +396,8 @@ class FineTuneWorker:
     it competed with tracking and mapping for the GIL (measured: 85 ms alone, ~420 ms wall inside
     the pipeline on 2 cores) and lengthened tracking's frames. The worker is forked once with the
     tuner (GIS model and its crop cache stay in the child, nothing is re-sent per job); a job sends
-    the SLAM points and the prior alignment, and gets back the alignment or the rejection reason.
+    the SLAM points, the prior alignment and the model's georeference ``correction`` (set by the
+    caller; gis.align.georef), and gets back the alignment or the rejection reason.
     ``wall_ms`` is each registration's wall time inside the worker, ``cpu_ms`` the CPU time it used
     (on a loaded 2-core board the two differ by the time the worker waited for a core). If the worker dies, the job in
     flight reports why, and the next submit starts a new worker (never an exception on the hot path).
@@ -402,7 +409,7 @@ class FineTuneWorker:
     (live, lag_s is None: results are adopted as soon as they exist).
     """
 
-    def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float], None],
+    def __init__(self, tuner: FineTuner, on_result: Callable[[Alignment | None, str, float, IcpMeasurement | None], None],
                  on_scale_check: Callable[[Alignment, ScaleCheck], None] | None = None, lag_s: float | None = None):
         self._on_result = on_result
         self._on_scale_check = on_scale_check
@@ -412,6 +419,7 @@ class FineTuneWorker:
         self.checking = threading.Event()  # a scale check in flight
         self.wall_ms: list[float] = []
         self.cpu_ms: list[float] = []
+        self.correction: GeorefCorrection | None = None  # sent with every job
         self._lock = threading.Lock()
         self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
@@ -420,7 +428,8 @@ class FineTuneWorker:
         with self._lock:
             if self.busy.is_set():
                 return False
-            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m, camera_h_sigma_m)
+            fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m,
+                                    camera_h_sigma_m, self.correction)
             self.busy.set()
         self._hand_over(t_s, fut, self._done)
         return True
@@ -433,7 +442,8 @@ class FineTuneWorker:
         with self._lock:
             if self.checking.is_set() or self._on_scale_check is None:
                 return False
-            fut = self._proc.submit(_check_scale_in_worker, points_slam, alignment, center_slam, camera_h_ell_m)
+            fut = self._proc.submit(_check_scale_in_worker, points_slam, alignment, center_slam, camera_h_ell_m,
+                                    self.correction)
             self.checking.set()
         self._hand_over(t_s, fut, lambda f: self._checked(f, alignment))
         return True
@@ -463,21 +473,21 @@ class FineTuneWorker:
 
     def _done(self, fut: Future) -> None:
         try:
-            alignment, reason, ms, cpu_ms = fut.result()
+            alignment, reason, ms, cpu_ms, icp = fut.result()
         except CancelledError:
             self.busy.clear()
             return
         except BrokenProcessPool as e:  # the worker died (e.g. out of memory): restarted at the next submit
             log.error("fine-tuning worker died: %s", e)
-            alignment, reason, ms, cpu_ms = None, f"fine-tuning worker died: {e}", float("nan"), float("nan")
+            alignment, reason, ms, cpu_ms, icp = None, f"fine-tuning worker died: {e}", float("nan"), float("nan"), None
         except Exception as e:  # a failed registration must not kill the pipeline
             log.error("fine-tuning failed: %s: %s", type(e).__name__, e)
-            alignment, reason, ms, cpu_ms = None, f"exception: {type(e).__name__}: {e}", float("nan"), float("nan")
+            alignment, reason, ms, cpu_ms, icp = None, f"exception: {type(e).__name__}: {e}", float("nan"), float("nan"), None
         if math.isfinite(ms):
             self.wall_ms.append(ms)
             self.cpu_ms.append(cpu_ms)
         try:  # busy until the result is adopted: whoever sees the worker free sees its alignment
-            self._on_result(alignment, reason, ms)
+            self._on_result(alignment, reason, ms, icp)
         finally:
             self.busy.clear()
 
@@ -494,6 +504,7 @@ def _baro_m(prior: AttitudePrior | None) -> float | None:
 
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 BARO_NOISE_M = 0.3       # barometric height 1-σ beside the offset's (noise 0.15 m, drift 0.02 m/√s over a minute)
+GEOREF_MAX_FIT_AGE_S = 5.0  # a registration is compared with a GNSS fit at most this old (gis.align.georef)
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
@@ -552,6 +563,11 @@ class Localizer:
         self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
         self._submitted: _Cloud | None = None  # the last registration's points, as submitted
         self._tuner = tuner
+        # the GIS model's georeference against GNSS (gis.align.georef): the newest GNSS fit, and
+        # (t_s, camera centre, GNSS fit) of the registration in flight when GNSS was trusted at its submission
+        self.georef = GeorefCheck(tuner.config.model_sigma_m) if tuner is not None else None
+        self._gnss_fit: Alignment | None = None
+        self._georef_job: tuple[float, np.ndarray, Alignment] | None = None
         self._scale_check_t_s = -math.inf
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
@@ -648,8 +664,11 @@ class Localizer:
         self._drop_alignment(t_s, "alignment dropped, fixes withheld: " + why)
         self.globalizer.clear_alignment()
 
-    def _on_finetune(self, alignment: Alignment | None, reason: str, wall_ms: float) -> None:
+    def _on_finetune(self, alignment: Alignment | None, reason: str, wall_ms: float, icp: IcpMeasurement | None = None) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
+        job, self._georef_job = self._georef_job, None
+        if alignment is not None and icp is not None and job is not None:
+            self._check_georef(*job, icp)
         if alignment is None:
             self.events.append((t, f"fine-tuning rejected: {reason} ({wall_ms:.0f} ms)"))
             if reason.startswith(SCALE_MISMATCH_REASON):
@@ -662,6 +681,30 @@ class Localizer:
         if current is not None and (alignment.map_id, alignment.reset_counter) != (current.map_id, current.reset_counter):
             return  # the map changed while we registered: stale
         self._accept(alignment, f"{reason}, {wall_ms:.0f} ms")
+
+    def _check_georef(self, t_s: float, c_slam: np.ndarray, fit: Alignment, icp: IcpMeasurement) -> None:
+        """One registration made while GNSS was trusted: where its ICP alone put the camera against
+        where the GNSS fit of that time puts it (gis.align.georef); the model's correction follows
+        the verdict (tuner, worker jobs, the Globalizer's model term)."""
+        p_gnss = fit.T_ecef_slam.apply(np.asarray(c_slam, float)[None])[0]
+        lat, lon, _ = ecef_to_geodetic(p_gnss)
+        d = R_ecef_enu(float(lat), float(lon)).T @ (icp.p_ecef_m - p_gnss)
+        if not self.georef.add(t_s, d, icp.cov_enu_m2 + self._sigma_here_m(fit, c_slam) ** 2 * np.eye(3)):
+            return
+        new, old = self.georef.correction(), self._tuner.correction
+        if new is None and old is None:
+            return
+        self._tuner.set_correction(new)
+        self.worker.correction = new
+        self.globalizer.model_sigma_m = self._tuner.model_sigma_m
+        g = self.georef
+        test = f"F {g.stat:.1f} {'>' if new is not None else '<='} {g.critical:.1f}, variance factor {g.alpha:.2f}"
+        if new is not None:
+            self.events.append((t_s, f"{new.describe()}: corrected ({test})"))
+            if old is None:
+                log.warning("%s: corrected (%s)", new.describe(), test)
+        else:
+            self.events.append((t_s, f"GIS model georeference as configured again ({test}): correction dropped"))
 
     def _on_scale_check(self, checked: Alignment, chk: ScaleCheck) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
@@ -737,6 +780,8 @@ class Localizer:
                     and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
                 self._frames_since_boot = 0
                 boot = self.bootstrap.solve()
+                if boot is not None:
+                    self._gnss_fit = boot
                 c = pose.T_slam_cam[:3, 3]
                 # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
                 # (the older alignment has drifted away from the current pose meanwhile).
@@ -759,6 +804,10 @@ class Localizer:
                 if len(points) >= self.min_points and self.worker.submit(
                         points, alignment, pose.T_slam_cam[:3, 3].copy(), pose.t_s, h_cam, h_sigma):
                     self._frames_since_tune = 0
+                    fit = self._gnss_fit
+                    self._georef_job = ((pose.t_s, pose.T_slam_cam[:3, 3].copy(), fit) if item.gnss_trusted
+                                        and fit is not None and pose.t_s - fit.t_s <= GEOREF_MAX_FIT_AGE_S
+                                        and (fit.map_id, fit.reset_counter) == (pose.map_id, pose.reset_counter) else None)
                     crop = self._tuner.in_crop(points, alignment.T_ecef_slam, pose.T_slam_cam[:3, 3])
                     order = np.argsort(ids[crop], kind="stable")
                     self._submitted = _Cloud(alignment, ids[crop][order], points[crop][order], t_s=pose.t_s)

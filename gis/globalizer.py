@@ -4,7 +4,8 @@ The covariance is propagated, not guessed: the alignment's information (Eq. 8–
 centre) is inverted and carried to the vehicle with the lever arm d from that centre
 (J = [−[d]×, I]), plus the scale uncertainty (scale_sigma·|d|), SLAM drift away from the
 alignment's centre (slam_drift_fraction·|d|), the GIS model's georeference accuracy
-(model_sigma_m, for GIS-based alignments), recent jumps of the SLAM track (below) and a floor. No
+(model_sigma_m, for GIS-based alignments; the Localizer replaces it with the correction's σ when
+the model is found metres off against GNSS, gis.align.georef), recent jumps of the SLAM track (below) and a floor. No
 fix when tracking has no pose, no alignment was accepted, or the alignment belongs to another
 SLAM map (reset_counter / map_id).
 

@@ -654,7 +654,7 @@ def test_the_worker_is_busy_until_its_result_is_adopted(city):
 
     adopted = []
 
-    def on_result(alignment, reason, wall_ms):
+    def on_result(alignment, reason, wall_ms, icp):
         time.sleep(0.3)  # adopting takes a while (the Localizer takes its lock, the Globalizer updates)
         adopted.append((alignment, reason))
 
@@ -682,7 +682,7 @@ def test_a_held_result_is_adopted_at_its_flight_time_on_the_callers_thread(city)
     from companion.pipeline import FineTuneWorker
 
     adopted = []
-    worker = FineTuneWorker(FineTuner(city), lambda a, r, ms: adopted.append((a, r, threading.current_thread())),
+    worker = FineTuneWorker(FineTuner(city), lambda a, r, ms, icp: adopted.append((a, r, threading.current_thread())),
                             lag_s=0.3)
     p, cam = _distorted_cloud(city, np.array([20.0, -10, 0]))
     try:

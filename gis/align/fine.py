@@ -65,7 +65,8 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   with a 1-σ a third of their error. Measured in docs/BENCHMARKS.md, "Restarts that disagree in
   rotation".
 - Update: prior (propagated to the crop centre with its lever arm, SLAM drift, scale σ and the
-  scale's own drift, ``slam_scale_drift_per_100m`` × distance; GNSS priors also with model_sigma_m)
+  scale's own drift, ``slam_scale_drift_per_100m`` × distance; GNSS priors also with the model's
+  georeference 1-σ, ``model_sigma_m`` or the correction's, below)
   and measurement z = x + v: Kalman update x = K z, P⁺ = (I − K) P, for every prior.
   Covariance intersection (Julier & Uhlmann 1997, one ω minimising the position trace) was used
   for FINE priors, since consecutive crops share map points; measured on the demo flight it chose
@@ -111,6 +112,12 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   inverse of the posterior [rot, trans] covariance in ENU at the crop centre (Eq. 10's role),
   sigma_m = its weakest position 1-σ.
 
+- Georeference correction (beyond the papers; ``set_correction``, gis.align.georef): a model
+  found metres off against GNSS is used shifted back by its estimated offset, with that estimate's
+  σ as its georeference 1-σ; the ICP runs on the model's own coordinates, only their map to ECEF
+  changes. Each registration reports its ICP result alone at the crop centre in the model's frame
+  *as loaded* (``Registration.icp``), which is what the check compares with GNSS.
+
 Measured on the simulator's real SLAM of an earlier session, with the tilt held (map snapshots every 50 frames of nominal and stale, 800
 frames; prior offset at the camera 0–4 m with a GNSS-like σ; median error at the camera):
 nominal 3.0 → 1.9 m, 4.0 → 2.1 m, 1.0 → 0.9 m; stale 3.0 → 2.6 m, 4.0 → 3.3 m, 1.0 → 1.0 m; from
@@ -145,6 +152,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
+from gis.align.georef import GeorefCorrection, IcpMeasurement
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.model import GisModel
@@ -198,6 +206,7 @@ class Registration:
     n_target: int = 0
     used_fpfh: bool = False
     wall_ms: float = 0.0
+    icp: IcpMeasurement | None = None  # the ICP's own result at the crop centre, before the update (gis.align.georef)
     nis: float = 0.0          # innovation χ² against the prior (0 without a usable prior)
     spread_m: float = 0.0     # largest disagreement of the ICP restarts (basin check): crop centre, m
     spread_rot_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # ... rotation about east, north, up
@@ -365,11 +374,27 @@ class FineTuner:
     def __init__(self, model: GisModel, config: AlignmentConfig | None = None) -> None:
         self.model = model
         self.config = config or AlignmentConfig()
-        self._T_ecef_enu = enu_sim3(model.origin)
+        self.correction: GeorefCorrection | None = None
+        self._T_ecef_enu = self._T_ecef_model = enu_sim3(model.origin)  # the model's ENU as loaded → ECEF
         self._T_enu_ecef = self._T_ecef_enu.inverse()
         _ = model._grid  # build the crop index now, not in the first (timed) refine
         self._crops = _CropCache(model, self.config.target_voxel_m)
         self._threadpools = ThreadpoolController()  # pykdtree's OpenMP runtime, limited per registration
+
+    def set_correction(self, correction: GeorefCorrection | None) -> None:
+        """Use the model shifted by −correction.offset_enu_m, with correction.sigma_m as its
+        georeference 1-σ instead of ``model_sigma_m`` (gis.align.georef); None: as loaded. The ICP
+        still runs on the model's own coordinates: only their map to ECEF changes."""
+        T = self._T_ecef_model
+        if correction is not None:
+            T = compose(T, Sim3(1.0, np.eye(3), -np.asarray(correction.offset_enu_m, float).reshape(3)))
+        self.correction = correction
+        self._T_ecef_enu, self._T_enu_ecef = T, T.inverse()
+
+    @property
+    def model_sigma_m(self) -> float:
+        """1-σ of the model's georeference: the correction's, else ``model_sigma_m`` as configured."""
+        return self.correction.sigma_m if self.correction is not None else self.config.model_sigma_m
 
     def refine(self, points_slam: np.ndarray, initial: Alignment, t_s: float, reset_counter: int,
                center_slam: np.ndarray | None = None, map_id: int = 0) -> Alignment | None:
@@ -452,6 +477,8 @@ class FineTuner:
 
         z = _vec(icp.T)
         R = _measurement_cov(icp, cfg, basin)
+        R_loc = self._R_enuC_enuO(c)  # model ENU axes → local ENU axes at c
+        measured = IcpMeasurement(self._T_ecef_model.apply((c + z[3:6])[None])[0], R_loc @ R[3:6, 3:6] @ R_loc.T)
         nis = 0.0
         if prior is None:  # the registration stands alone
             x_post, P_post = z, R
@@ -476,7 +503,7 @@ class FineTuner:
         common = dict(fitness=icp.fitness, rmse_m=icp.rmse_m, jump_m=jump, sigma_m=sig_post, n_source=len(src),
                       n_target=n_tgt, used_fpfh=used_fpfh, nis=nis, spread_m=spread,
                       spread_rot_deg=tuple(float(v) for v in np.degrees(basin.rotation_rad)), spread_scale=basin.log_scale,
-                      sigma_mad_m=icp.sigma_mad_m, scale_ratio=k)
+                      sigma_mad_m=icp.sigma_mad_m, scale_ratio=k, icp=measured)
         if not reason and jump > cfg.max_jump_m:
             reason = f"jump {jump:.2f} m > max_jump_m {cfg.max_jump_m}"
         if not reason and spread > MULTISTART_M + cfg.max_jump_m:
@@ -558,7 +585,7 @@ class FineTuner:
         dist = float(np.linalg.norm(d))
         iso = (cfg.slam_drift_fraction * dist) ** 2 + (initial.scale_sigma * dist) ** 2
         if initial.source is AlignmentSource.GNSS:  # GNSS vs the model: the model's georeference error
-            iso += cfg.model_sigma_m**2
+            iso += self.model_sigma_m**2
         cov[3:6, 3:6] += iso * np.eye(3)
         scale_drift = cfg.slam_scale_drift_per_100m * dist / 100.0  # the map's scale drifts as it grows
         cov[6, 6] = initial.scale_sigma**2 + scale_drift**2 if initial.scale_sigma > 0 else UNKNOWN_VAR
