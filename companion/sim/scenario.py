@@ -64,6 +64,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                          motion_blur=True, exposure_s=1 / 30),
     "slow": ScenarioSpec("slow", flight=replace(_LOOP, speed_mps=3.5)),
     "loop": ScenarioSpec("loop", flight=replace(_LOOP, laps=2.25, speed_mps=6.0)),
+    # the GIS model 3 m off its georeference (OSM-grade), on the long `loop` flight: gis/align/georef.py
+    "offset": ScenarioSpec("offset", flight=replace(_LOOP, laps=2.25, speed_mps=6.0), stale=StaleSpec(registration_error_m=3.0)),
     "survey": ScenarioSpec("survey", flight=FlightSpec(kind="survey", speed_mps=8.0, altitude_m=110.0, size_m=240.0,
                                                         row_spacing_m=80.0), camera_pitch_deg=70.0),
     "orbit": ScenarioSpec("orbit", flight=FlightSpec(kind="orbit", speed_mps=5.0, altitude_m=70.0, size_m=160.0, laps=1.0)),
