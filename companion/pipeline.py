@@ -538,7 +538,7 @@ class Localizer:
                  finetune_every_frames_denied: int = 50,
                  initial_alignment: Alignment | None = None, bootstrap: BootstrapCollector | None = None,
                  min_points_for_finetune: int = 200, finetune_min_parallax_deg: float = 0.0,
-                 repeatable_lag_s: float | None = None):
+                 finetune_recent_keyframes: int = 0, repeatable_lag_s: float | None = None):
         """``repeatable_lag_s``: offline, repeatable runs only (``settle``); None live."""
         self.slam = slam
         self.globalizer = globalizer
@@ -547,6 +547,7 @@ class Localizer:
         self.every_denied = finetune_every_frames_denied
         self.min_points = min_points_for_finetune
         self.min_parallax_deg = finetune_min_parallax_deg
+        self.recent_keyframes = finetune_recent_keyframes
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
@@ -795,9 +796,12 @@ class Localizer:
                     and self._frames_since_tune >= every):
                 snapshot = self.slam.map_points()
                 points, ids = snapshot.points_slam, snapshot.point_ids
+                keep = np.ones(len(ids), bool)
                 if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
-                    well = snapshot.parallax_deg >= self.min_parallax_deg
-                    points, ids = points[well], ids[well]
+                    keep &= snapshot.parallax_deg >= self.min_parallax_deg
+                if self.recent_keyframes > 0 and snapshot.last_seen_kf_age is not None:
+                    keep &= snapshot.last_seen_kf_age < self.recent_keyframes
+                points, ids = points[keep], ids[keep]
                 h_cam = self._camera_h_ell_m(item.prior)
                 # its 1-σ: the GNSS vertical accuracy the offset was learned from, and the barometer's own
                 h_sigma = None if h_cam is None else math.hypot(self._baro_offset_sigma_m, BARO_NOISE_M)

@@ -34,6 +34,7 @@ class AlignmentConfig(BaseModel):
     inlier_distance_m: float = Field(0.5, gt=0, le=10, description="a SLAM point is an inlier (fitness, RMSE) within this point-to-plane distance")
     min_points: int = Field(50, ge=10, le=1_000_000, description="registration rejected with fewer SLAM points in the crop")
     finetune_min_parallax_deg: float = Field(8.0, ge=0, le=60, description="SLAM points whose first and last observing keyframes see them under a smaller angle are left out of fine-tuning (depth error grows as 1/parallax); 0 keeps all. 8: after-loss 3D error lower in 3 of 4 bench runs (nominal/stale, seeds 0/1), 5 and 12 worse on stale (docs/BENCHMARKS.md)")
+    finetune_recent_keyframes: int = Field(0, ge=0, le=100_000, description="only SLAM points observed by one of the newest N keyframes go into fine-tuning; 0 keeps all. A revisited area holds an older layer of points placed under an older, drifted SLAM frame, which anchors the registration at the old alignment (docs/BENCHMARKS.md, \"Long denials\")")
     max_sigma_m: float = Field(0.5, gt=0, description="registration rejected when the data alone (σ²H⁻¹, Eq. 8–9) leave a position 1-σ above this along their weakest direction (degeneracy, e.g. one facade); not the reported σ")
     max_sigma_rot_deg: float = Field(2.0, gt=0, le=180, description="registration rejected when its weakest rotation 1-σ exceeds this")
     max_sigma_scale: float = Field(0.05, gt=0, le=1, description="registration rejected when the relative scale 1-σ exceeds this")

@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 
 #: per-keyframe timing histories keep the latest this many entries (about 100 bytes per keyframe)
 STATS_HISTORY = 10_000
+NEVER_SEEN_KF_AGE = np.iinfo(np.int32).max  # a map point no held keyframe observes (map_point_arrays)
 
 
 def _history() -> deque:
@@ -112,13 +113,17 @@ def _gravity_arrays(kfs: list[Keyframe]) -> tuple[np.ndarray | None, np.ndarray 
     return g, sigma
 
 
-def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N,3) SLAM positions, (N,) observation counts and (N,) parallax (deg) of the points ``pids``.
+def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(N,3) SLAM positions, (N,) observation counts, (N,) parallax (deg) and (N,) keyframe age of
+    the points ``pids``.
 
     Parallax: the angle between the rays to a point from the first and the last keyframe that
     observe it (0 when one does). A point's depth error grows as 1/parallax (a feature's bearing
     noise of ~1 mrad gives ~0.5 m at 15° and 100–150 m range), so alignment can leave out the
-    poorly triangulated ones. Vectorised over the flattened observations: a loop per point took
+    poorly triangulated ones. Keyframe age: how many keyframes were created after the newest one
+    that observes the point (0: the newest keyframe sees it; a large sentinel when no keyframe the
+    map still holds does), so alignment can keep to the part of the map the camera is in now.
+    Vectorised over the flattened observations: a loop per point took
     80 % of a full map snapshot, which runs on the tracking thread (docs/BENCHMARKS.md,
     "Fine-tuning cost": "Map snapshot, vectorised parallax"). Call with m.lock held."""
     pts = [m.points[p] for p in pids]
@@ -140,7 +145,10 @@ def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarra
     A, B = P.copy(), P.copy()  # a point without two observing keyframes: zero-length rays → 0°
     A[two] = centers[np.searchsorted(ids, first[two])]
     B[two] = centers[np.searchsorted(ids, last[two])]
-    return P, n_obs.astype(np.int32), parallax_deg(P, A, B)
+    # keyframe ids are allocated in sequence (SlamMap.new_kf_id), so an id difference counts the
+    # keyframes made since; the newest is the last id handed out, held whole by the map
+    age = np.where(last >= 0, (m.keyframes_created - 1) - last, NEVER_SEEN_KF_AGE).astype(np.int64)
+    return P, n_obs.astype(np.int32), parallax_deg(P, A, B), age
 
 
 TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
@@ -607,11 +615,11 @@ class LocalMapper:
         with m.lock:
             pids = sorted(m.points)
             ids = m.kf_ids()[-self.config.local_window:]
-            P, n_obs, parallax = map_point_arrays(m, pids)
+            P, n_obs, parallax, age = map_point_arrays(m, pids)
             return MapUpdate(
                 t_s=m.keyframes[ids[-1]].t_s if ids else 0.0,
                 points_slam=P, point_ids=np.array(pids, np.int64), n_obs=n_obs,
                 keyframe_t_s=np.array([m.keyframes[k].t_s for k in ids]),
                 keyframe_centers_slam=np.array([m.keyframes[k].center for k in ids]).reshape(-1, 3),
                 reset_counter=self.reset_counter, full=full, map_id=self.reset_counter,
-                parallax_deg=parallax)
+                parallax_deg=parallax, last_seen_kf_age=age)

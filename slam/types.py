@@ -118,7 +118,10 @@ class MapUpdate:
     describes; ``full`` is True when this update replaces all points (e.g. after a loop closure).
     parallax_deg: (N,) angle between the rays to each point from its first and last observing
     keyframes (a proxy for its depth accuracy; 0 when one keyframe sees it), in full snapshots
-    (``SlamSystem.map_points``) only, else None.
+    (``SlamSystem.map_points``) only, else None. last_seen_kf_age: (N,) keyframes created after the
+    newest keyframe that observes each point (0: the newest sees it), in full snapshots only, else
+    None: alignment keeps to the points of the map the camera is flying in now (a revisited area
+    holds an older layer of points, placed under an older, drifted, SLAM frame).
     """
 
     t_s: float
@@ -131,3 +134,4 @@ class MapUpdate:
     full: bool = False
     map_id: int = 0
     parallax_deg: np.ndarray | None = None
+    last_seen_kf_age: np.ndarray | None = None

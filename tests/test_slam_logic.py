@@ -275,11 +275,16 @@ def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays()
                                 np.zeros((2, 32), np.uint8), np.full(2, -1, np.int64)))
     both = m.add_point(np.array([5.0, 0.0, 10.0]), np.zeros(32), {0: 0, 1: 0, 2: 0})  # 10 m below the middle
     one = m.add_point(np.array([0.0, 0.0, 50.0]), np.zeros(32), {0: 1})               # one observation
-    P, n_obs, par = map_point_arrays(m, [one, both])  # any order
-    assert P.tolist() == [[0.0, 0.0, 50.0], [5.0, 0.0, 10.0]] and n_obs.tolist() == [1, 3]
+    gone = m.add_point(np.array([9.0, 0.0, 50.0]), np.zeros(32), {1: 1})
+    m.points[gone].obs = {7: 1}  # observed only by a keyframe the map no longer holds
+    P, n_obs, par, age = map_point_arrays(m, [one, both, gone])  # any order
+    assert P.tolist()[:2] == [[0.0, 0.0, 50.0], [5.0, 0.0, 10.0]] and n_obs.tolist()[:2] == [1, 3]
     # rays from x=0 and x=10 to (5, 0, 10): each 26.57° off the vertical, 53.13° apart
     assert par[1] == pytest.approx(2 * np.degrees(np.arctan(0.5)), abs=1e-9)
     assert par[0] == 0.0
+    # keyframe age: "both" is seen by the newest keyframe (2), "one" only by keyframe 0, two older;
+    # a point no held keyframe observes is as old as it gets
+    assert age.tolist()[:2] == [2, 0] and age[2] > 10**9
 
 
 def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
