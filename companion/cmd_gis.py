@@ -1,6 +1,7 @@
 """`terraslam gis import|ls|fetch` and `terraslam align-offline` — GIS cache and offline alignment (issue 5)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import List, Optional
 
@@ -53,6 +54,30 @@ def gis_import(
                f"h {o.h0_ellipsoid_m:.1f} m (ellipsoid), CRS {model.source_crs}")
 
 
+def _model_sigma_m(config: Optional[Path]) -> float:
+    from companion.config import ConfigError, load_config
+
+    try:
+        return load_config(config).alignment.model_sigma_m
+    except ConfigError as e:
+        fail(str(e))
+
+
+def _georef_verdict(evidence, model_sigma_m: float) -> str:
+    """What the flights so far say about a cached model's georeference (gis.align.georef)."""
+    from gis.align.georef import GeorefCheck
+
+    if evidence is None or evidence.n == 0:
+        return "-"
+    chk = GeorefCheck(model_sigma_m)
+    chk.add_evidence(evidence)
+    c = chk.correction()
+    if c is None:
+        return f"as configured ({evidence.n} registrations)"
+    e, n, u = c.offset_enu_m
+    return f"off {math.hypot(e, n):.1f} m, up {u:+.1f} m, 1-σ {c.sigma_m:.1f} m ({evidence.n} registrations)"
+
+
 @gis_app.command("ls")
 def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE) -> None:
     """List cached GIS models and their transforms."""
@@ -65,10 +90,12 @@ def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE)
         entries = _cache(config, cache_dir).entries()
     except CacheCorrupt as e:
         fail(str(e))
-    t = Table("site", "origin lat, lon", "radius m", "points", "CRS", "T_rough", "T_fine", "sha256")
+    t = Table("site", "origin lat, lon", "radius m", "points", "CRS", "T_rough", "T_fine", "georeference vs GNSS", "sha256")
+    model_sigma_m = _model_sigma_m(config)
     for e in entries:
         t.add_row(e.site_id, f"{e.origin.lat0_deg:.6f}, {e.origin.lon0_deg:.6f}", f"{e.radius_m:.0f}", str(e.n_points),
-                  e.source_crs, "yes" if e.T_rough else "-", "yes" if e.T_fine else "-", e.sha256[:12])
+                  e.source_crs, "yes" if e.T_rough else "-", "yes" if e.T_fine else "-",
+                  _georef_verdict(e.georef, model_sigma_m), e.sha256[:12])
     Console().print(t)
     if not entries:
         typer.echo("(cache is empty)")

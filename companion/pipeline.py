@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import gnss_bootstrap
-from gis.align.georef import GeorefCheck, GeorefCorrection, IcpMeasurement
+from gis.align.georef import GeorefCheck, GeorefCorrection, GeorefEvidence, IcpMeasurement
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -690,8 +690,30 @@ class Localizer:
         p_gnss = fit.T_ecef_slam.apply(np.asarray(c_slam, float)[None])[0]
         lat, lon, _ = ecef_to_geodetic(p_gnss)
         d = R_ecef_enu(float(lat), float(lon)).T @ (icp.p_ecef_m - p_gnss)
-        if not self.georef.add(t_s, d, icp.cov_enu_m2 + self._sigma_here_m(fit, c_slam) ** 2 * np.eye(3)):
-            return
+        with self._lock:
+            taken = self.georef.add(t_s, d, icp.cov_enu_m2 + self._sigma_here_m(fit, c_slam) ** 2 * np.eye(3))
+        if taken:
+            self._apply_georef(t_s)
+
+    def georef_evidence(self) -> GeorefEvidence | None:
+        """All evidence on the model's georeference so far, for the GIS cache (None without a model)."""
+        with self._lock:
+            return None if self.georef is None else self.georef.evidence
+
+    def restore_georef(self, evidence: GeorefEvidence, t_s: float = 0.0) -> GeorefCorrection | None:
+        """Start from earlier flights' evidence on the model's georeference (gis.cache, same site):
+        a model they found off is corrected from now on. Returns the correction in force."""
+        if self.georef is None:
+            return None
+        with self._lock:
+            self.georef.add_evidence(evidence)
+        self.events.append((t_s, f"GIS model georeference: {evidence.n} registrations vs GNSS from earlier flights"))
+        self._apply_georef(t_s)
+        return self._tuner.correction
+
+    def _apply_georef(self, t_s: float) -> None:
+        """The correction the georeference evidence calls for goes to the tuner, the worker's jobs
+        and the Globalizer's model term."""
         new, old = self.georef.correction(), self._tuner.correction
         if new is None and old is None:
             return

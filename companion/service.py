@@ -77,6 +77,25 @@ def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str):
         return None
 
 
+def _restore_georef(cache, site_id: str, localizer) -> int:
+    """Earlier flights' evidence on this model's georeference (gis.align.georef) into the
+    localizer; returns how many registrations it holds. Corrupt evidence is logged and left out:
+    the flight starts as if it were the first at the site (the model as configured)."""
+    from gis.cache import CacheCorrupt
+
+    try:
+        ev = cache.load_georef(site_id)
+    except CacheCorrupt as e:
+        log_event(log, "georef_unreadable", f"{e}; starting without it", level=logging.ERROR)
+        return -1
+    if ev is None:
+        return 0
+    c = localizer.restore_georef(ev)
+    log_event(log, "georef_restored", f"GIS model georeference evidence of earlier flights at site {site_id}: {ev.n} registrations vs GNSS; "
+              + (c.describe() + ": corrected" if c is not None else "model as configured"), n=ev.n)
+    return ev.n
+
+
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer
@@ -102,6 +121,7 @@ def run_service(cfg: AppConfig) -> int:
                                 initial_map=restored.loaded if restored else None, p_body_gnss_m=cfg.mavlink.gnss_antenna_m)
     if restored is not None:
         _restore_alignment(cfg, localizer, restored)
+    georef_n = _restore_georef(cache, site_id, localizer)
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
              if cfg.persistence.enabled else None)
     recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id)
@@ -117,6 +137,16 @@ def run_service(cfg: AppConfig) -> int:
             cache.save_transform(site_id, "fine", a.T_ecef_slam, {"t_s": a.t_s, "sigma_m": a.sigma_m, "fitness": a.fitness})
             saved["t"] = a.t_s
             log_event(log, "t_fine_saved", f"T_fine saved to the GIS cache (site {site_id})", sigma_m=a.sigma_m)
+
+    def save_georef() -> None:
+        """The evidence on the model's georeference, whenever a registration added to it."""
+        nonlocal georef_n
+        ev = localizer.georef_evidence()
+        if ev is not None and ev.n != georef_n:
+            cache.save_georef(site_id, ev)
+            georef_n = ev.n
+            log_event(log, "georef_saved", f"GIS model georeference evidence saved ({ev.n} registrations vs GNSS, site {site_id})",
+                      n=ev.n)
 
     def alignment_changed() -> None:
         """A newly accepted alignment goes to disk with the map soon (by the saver thread)."""
@@ -151,6 +181,7 @@ def run_service(cfg: AppConfig) -> int:
             if recorder is not None:
                 recorder.on_frame(frame, rec.fix)
             save_fine()
+            save_georef()
             alignment_changed()
             ctx.beat()
 
@@ -163,6 +194,7 @@ def run_service(cfg: AppConfig) -> int:
     sup.on_shutdown("close bridge", bridge.close)
     sup.on_shutdown("close localizer", localizer.close)
     sup.on_shutdown("save T_fine", save_fine)
+    sup.on_shutdown("save georeference evidence", save_georef)
     if saver is not None:
         sup.on_shutdown("save SLAM map", saver.close)
     sup.install_signal_handlers()

@@ -1,10 +1,11 @@
 """GIS cache (TerraSLAM §6: Pre-fetch, SaveCache): models + per-site transforms in SQLite.
 
-Layout under ``root``: ``index.sqlite`` (tables ``models`` and ``transforms``) and
+Layout under ``root``: ``index.sqlite`` (tables ``models``, ``transforms`` and ``georef``: the
+evidence on a model's georeference gathered against GNSS over the flights so far) and
 ``models/<sha256>.npz`` (the GisModel arrays). Every model file and transform row carries a
 SHA-256 content hash that is checked on load; a mismatch raises CacheCorrupt naming the entry.
 A site covers the disc of ``radius_m`` around its model's ENU origin; ``prefetch`` returns the
-nearest site covering a position, with its T_rough and latest T_fine.
+nearest site covering a position, with its T_rough, latest T_fine and georeference evidence.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gis.align.georef import GeorefEvidence
 from gis.geodesy import LocalFrame
 from gis.model import GisModel
 from gis.sim3 import Sim3
@@ -29,6 +31,8 @@ CREATE TABLE IF NOT EXISTS models (
 CREATE TABLE IF NOT EXISTS transforms (
     site_id TEXT, kind TEXT, matrix_json TEXT, meta_json TEXT, sha256 TEXT, saved_unix_s REAL,
     PRIMARY KEY (site_id, kind));
+CREATE TABLE IF NOT EXISTS georef (
+    site_id TEXT PRIMARY KEY, evidence_json TEXT, sha256 TEXT, saved_unix_s REAL);
 """
 
 
@@ -49,6 +53,7 @@ class CacheEntry:
     T_rough: Sim3 | None = None
     T_fine: Sim3 | None = None
     meta: dict = field(default_factory=dict)
+    georef: GeorefEvidence | None = None  # the model's georeference measured against GNSS (gis.align.georef)
 
 
 class GisCache:
@@ -94,6 +99,31 @@ class GisCache:
         with self._db() as db:
             db.execute("INSERT OR REPLACE INTO transforms VALUES (?,?,?,?,?,?)",
                        (site_id, kind, mj, meta_j, _sha256_text(mj + meta_j), time.time()))
+
+    def save_georef(self, site_id: str, evidence: GeorefEvidence) -> None:
+        """Store (replacing the previous) the evidence on the site model's georeference, all flights
+        so far (gis.align.georef): the next flight at the site starts from it."""
+        if self._row(site_id) is None:
+            raise KeyError(f"no cached model for site {site_id!r}")
+        j = json.dumps({"info": evidence.info.tolist(), "info_d": evidence.info_d.tolist(),
+                        "dWd": evidence.dWd, "n": evidence.n}, sort_keys=True)
+        with self._db() as db:
+            db.execute("INSERT OR REPLACE INTO georef VALUES (?,?,?,?)", (site_id, j, _sha256_text(j), time.time()))
+
+    def load_georef(self, site_id: str) -> GeorefEvidence | None:
+        """The stored georeference evidence of a site, or None; CacheCorrupt when the row does not
+        match its hash or does not hold valid evidence."""
+        with self._db() as db:
+            r = db.execute("SELECT evidence_json, sha256 FROM georef WHERE site_id=?", (site_id,)).fetchone()
+        if r is None:
+            return None
+        if _sha256_text(r[0]) != r[1]:
+            raise CacheCorrupt(f"site {site_id!r}: stored georeference evidence does not match its SHA-256 (corrupted)")
+        try:
+            d = json.loads(r[0])
+            return GeorefEvidence(np.asarray(d["info"], float), np.asarray(d["info_d"], float), float(d["dWd"]), int(d["n"]))
+        except (ValueError, KeyError, TypeError) as e:
+            raise CacheCorrupt(f"site {site_id!r}: stored georeference evidence is invalid: {e}") from e
 
     # --- load / Pre-fetch --------------------------------------------------------------------
     def load_model(self, site_id: str) -> GisModel:
@@ -147,7 +177,7 @@ class GisCache:
         return CacheEntry(
             r["site_id"], LocalFrame(r["lat0_deg"], r["lon0_deg"], r["h0_ellipsoid_m"]), r["radius_m"],
             self.root / "models" / r["file"], r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
-            rough[0] if rough else None, fine[0] if fine else None, meta,
+            rough[0] if rough else None, fine[0] if fine else None, meta, self.load_georef(r["site_id"]),
         )
 
 

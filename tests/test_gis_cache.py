@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import hashlib
 import http.server
 import json
 import threading
@@ -61,6 +62,37 @@ def test_cache_round_trip_prefetch_and_hash_checks(tmp_path, model):
         db.execute("UPDATE transforms SET matrix_json=replace(matrix_json, '2.5', '2.6') WHERE kind='rough'")
     with pytest.raises(CacheCorrupt, match="T_rough"):
         cache2.load_transform(site, "rough")
+
+
+def test_georeference_evidence_round_trips_and_a_tampered_row_is_refused(tmp_path, model):
+    """The evidence on a model's georeference (gis.align.georef) is stored per site, comes back
+    exactly in a fresh cache object (prefetch too), and a row that no longer matches its hash or
+    holds no valid evidence raises CacheCorrupt naming the site."""
+    import sqlite3
+
+    from gis.align.georef import GeorefEvidence
+
+    cache = GisCache(tmp_path / "cache")
+    site = cache.save_model(model, "zurich")
+    assert cache.load_georef(site) is None
+    ev = GeorefEvidence(np.array([[2.0, 0.1, 0.0], [0.1, 3.0, 0.0], [0.0, 0.0, 1.0]]), np.array([5.5, -3.25, 0.5]), 17.75, 4)
+    cache.save_georef(site, ev)
+    back = GisCache(tmp_path / "cache").load_georef(site)
+    np.testing.assert_array_equal(back.info, ev.info)
+    np.testing.assert_array_equal(back.info_d, ev.info_d)
+    assert (back.dWd, back.n) == (17.75, 4)
+    assert cache.prefetch(ORIGIN.lat0_deg, ORIGIN.lon0_deg).georef.n == 4
+    with pytest.raises(KeyError, match="no cached model"):
+        cache.save_georef("elsewhere", ev)
+    with sqlite3.connect(cache.db_path) as db:
+        db.execute("UPDATE georef SET evidence_json=replace(evidence_json, '17.75', '1.75')")
+    with pytest.raises(CacheCorrupt, match="zurich.*georeference.*SHA-256"):
+        cache.load_georef(site)
+    bad = json.dumps({"info": [[1, 0], [0, 1]], "info_d": [0, 0, 0], "dWd": 0.0, "n": 1}, sort_keys=True)
+    with sqlite3.connect(cache.db_path) as db:  # a consistent hash over invalid content
+        db.execute("UPDATE georef SET evidence_json=?, sha256=?", (bad, hashlib.sha256(bad.encode()).hexdigest()))
+    with pytest.raises(CacheCorrupt, match="zurich.*invalid"):
+        cache.load_georef(site)
 
 
 def test_local_provider_radius(tmp_path, model):

@@ -7,13 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 TERRASLAM = [str(Path(sys.executable).with_name("terraslam"))]
 
 
-def _run(*args):
-    return subprocess.run(TERRASLAM + list(args), capture_output=True, text=True, timeout=900, env=dict(os.environ))
+def _run(*args, env: dict | None = None):
+    return subprocess.run(TERRASLAM + list(args), capture_output=True, text=True, timeout=900, env=dict(os.environ, **(env or {})))
 
 
 def _city_ply(tmp_path: Path) -> Path:
@@ -35,6 +36,16 @@ def test_gis_import_ls_fetch(tmp_path):
     assert "site demo" in r.stdout and "EPSG:32632" in r.stdout
     r = _run("gis", "ls", "--cache-dir", str(cache))
     assert r.returncode == 0 and "demo" in r.stdout
+    # earlier flights' evidence on the model's georeference (gis.align.georef) shows in the listing
+    from gis.align.georef import GeorefCheck
+    from gis.cache import GisCache
+
+    chk = GeorefCheck(0.25)
+    for k, d in enumerate([(2.4, 0.1, 0.0), (2.6, -0.2, 0.1), (2.5, 0.2, -0.1), (2.5, 0.0, 0.0)]):
+        chk.add(20.0 * k, np.array(d), 0.25 * np.eye(3))
+    GisCache(cache).save_georef("demo", chk.evidence)
+    r = _run("gis", "ls", "--cache-dir", str(cache), env={"COLUMNS": "250"})
+    assert r.returncode == 0 and "off 2.5 m, up +0.0 m" in r.stdout and "(4 registrations)" in r.stdout, r.stdout
     from pyproj import Transformer
     lon, lat = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True).transform(465000, 5250000)
     r = _run("gis", "fetch", "--lat", str(lat), "--lon", str(lon), "--source", str(tmp_path), "--site", "near",

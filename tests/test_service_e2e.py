@@ -127,6 +127,25 @@ def _feed_good_gnss(sim: SimAutopilot, stop: threading.Event) -> None:
         sim.feed_gnss(flight.gnss(now, now - t0))
 
 
+def _earlier_flights_found_the_model_off(cfg_path: Path) -> str:
+    """Store in the service's GIS cache the evidence of earlier flights at the site: six
+    registrations that put the model 2.5 m east of GNSS (gis.align.georef); returns the site id."""
+    from companion.config import load_config
+    from gis.align.georef import GeorefCheck
+    from gis.cache import GisCache
+    from gis.loaders import load_model
+
+    cfg = load_config(cfg_path)
+    cache = GisCache(cfg.gis.cache_dir)
+    site_id = cache.save_model(load_model(cfg.gis.model, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m))
+    chk = GeorefCheck(cfg.alignment.model_sigma_m)
+    rng = np.random.default_rng(0)
+    for k in range(6):
+        chk.add(20.0 * k, np.array([2.5, 0.0, 0.0]) + rng.normal(0, 0.5, 3), np.eye(3))
+    cache.save_georef(site_id, chk.evidence)
+    return site_id
+
+
 def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path, gis_mesh: Path) -> None:
     t_test = time.monotonic()
     sim = SimAutopilot("ardupilot", params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}).start()
@@ -136,6 +155,7 @@ def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path,
     notify = TimedListener()
     log_path = tmp_path / "service.log"
     cfg = _write_config(tmp_path, gis_mesh, sim.port)
+    site_id = _earlier_flights_found_the_model_off(cfg)
     env = _service_env({"NOTIFY_SOCKET": notify.lst.address, "WATCHDOG_USEC": str(WATCHDOG_USEC)})
     with open(log_path, "wb") as log_file:
         proc = subprocess.Popen([str(TERRASLAM), "run", "--config", str(cfg)], env=env,
@@ -197,6 +217,9 @@ def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path,
     assert stop_s < TIMEOUT_STOP_S
     assert notify.lst.count("STOPPING=1") == 1
     assert notify.times("STOPPING=1")[0] >= max(pings)
+    # the GIS cache's evidence on the model's georeference (earlier flights) corrected it at start
+    assert "6 registrations vs GNSS; GIS model georeference off by" in log_text, log_text[-3000:]
+    assert site_id in log_text
     assert "Traceback" not in log_text, log_text[-3000:]
     # the model went into the GIS cache (CacheDirectory= in the unit)
     entries = GisCache(tmp_path / "cache").entries()

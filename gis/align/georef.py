@@ -33,6 +33,13 @@ correction's σ. A false alarm (0.1 % per test on an accurate model) costs accur
 integrity, since b̂ is then an unbiased estimate with its own covariance. Offsets larger than the ICP's basin / ``max_jump_m``
 (~5 m) give refused registrations and so no measurement: the registrations stay refused, which is
 safe, and the log says why.
+
+Evidence carries over between flights at the same site (``GeorefEvidence``, kept by gis.cache with
+the model): the measurements of different flights are independent (GNSS errors decorrelate within
+seconds to minutes, not days) and the model's offset is the same, so their sums simply add. A
+flight too short to find an offset alone (`nominal`'s 63 s of GNSS give 3 registrations) then
+starts from what the earlier flights measured, and a model found off is corrected from the
+first frame.
 """
 from __future__ import annotations
 
@@ -72,6 +79,29 @@ class GeorefCorrection:
                 f"up {u:+.2f} m; 1-σ {self.sigma_m:.2f} m, {self.n} registrations vs GNSS)")
 
 
+@dataclass(frozen=True)
+class GeorefEvidence:
+    """The sufficient statistics of measurements d_k, S_k (module doc), in ENU metres:
+    info = Σ S_k⁻¹ (3, 3) [m⁻²], info_d = Σ S_k⁻¹ d_k (3,) [m⁻¹], dWd = Σ d_kᵀ S_k⁻¹ d_k, n
+    measurements. What a flight hands to the next one at the same site (gis.cache)."""
+
+    info: np.ndarray
+    info_d: np.ndarray
+    dWd: float
+    n: int
+
+    def __post_init__(self):
+        info, info_d = np.asarray(self.info, float), np.asarray(self.info_d, float)
+        if info.shape != (3, 3) or info_d.shape != (3,) or self.n < 0 or not (
+                np.all(np.isfinite(info)) and np.all(np.isfinite(info_d)) and np.isfinite(self.dWd) and self.dWd >= 0):
+            raise ValueError(f"georeference evidence: expected a finite 3×3 information, 3-vector, dWd ≥ 0 and n ≥ 0, "
+                             f"got shapes {info.shape} / {info_d.shape}, dWd {self.dWd}, n {self.n}")
+        if self.n > 0 and np.linalg.eigvalsh(0.5 * (info + info.T))[0] <= 0:
+            raise ValueError("georeference evidence: the information matrix is not positive definite")
+        object.__setattr__(self, "info", info)
+        object.__setattr__(self, "info_d", info_d)
+
+
 @dataclass
 class GeorefCheck:
     """Accumulates d_k (ENU m) with covariance S_k (module doc) and decides on a correction."""
@@ -103,6 +133,18 @@ class GeorefCheck:
         self.n += 1
         self.last_t_s = t_s
         return True
+
+    @property
+    def evidence(self) -> GeorefEvidence:
+        """Everything measured so far (earlier flights' evidence included)."""
+        return GeorefEvidence(self.info.copy(), self.info_d.copy(), self.dWd, self.n)
+
+    def add_evidence(self, e: GeorefEvidence) -> None:
+        """Earlier flights' measurements (independent of this flight's: module doc)."""
+        self.info += e.info
+        self.info_d += e.info_d
+        self.dWd += e.dWd
+        self.n += e.n
 
     def correction(self) -> GeorefCorrection | None:
         """The correction the measurements so far call for (module doc), or None: the model is as
