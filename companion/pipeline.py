@@ -191,7 +191,13 @@ class SlamSpeedCheck:
     The window keeps SLAM-frame positions and takes the displacement under the alignment of the
     latest sample: while GNSS is good a new alignment is adopted every few seconds, and the
     globalised positions of one window under two alignments differ by the change between them,
-    which is not motion.
+    which is not motion. The speed is the length of the component-wise median of the frame-to-frame
+    horizontal velocities, not the window's end-to-end displacement: local mapping moves the map,
+    and the tracked camera with it, by metres in one frame (bundle adjustment, loop closures; 3–9 m
+    in a `loop` flight's second lap), which read as scale breaks (ratios 0.08–1.35) and dropped the
+    alignment just before GNSS was lost, so no fix came for the rest of the flight
+    (docs/BENCHMARKS.md, "Map moves read as scale breaks"). A jump is one step of ~10; a scale
+    break shrinks or stretches every step.
     """
 
     window_s: float = 1.0
@@ -213,12 +219,15 @@ class SlamSpeedCheck:
         self._hist.append((t_s, np.asarray(c_slam, float), float(gnss_speed_mps)))
         while len(self._hist) > 2 and self._hist[1][0] <= t_s - self.window_s:
             self._hist.pop(0)
-        t0, c0, _ = self._hist[0]
+        t0 = self._hist[0][0]
         if t_s - t0 < 0.5 * self.window_s:
             return self.broken
-        p0, p1 = T_ecef_slam.apply(np.array([c0, self._hist[-1][1]]))
-        v_enu = R_ecef_enu_.T @ (p1 - p0) / (t_s - t0)
-        v_vis = float(np.hypot(v_enu[0], v_enu[1]))
+        t = np.array([h[0] for h in self._hist])
+        p_enu = T_ecef_slam.apply(np.array([h[1] for h in self._hist])) @ R_ecef_enu_  # rows: ENU axes, ECEF origin
+        dt = np.diff(t)
+        steps = dt > 0
+        v_step = np.diff(p_enu[:, :2], axis=0)[steps] / dt[steps, None]
+        v_vis = float(np.linalg.norm(np.median(v_step, axis=0)))
         v_gnss = float(np.mean([v for _, _, v in self._hist[1:]]))  # the same span's mean ground speed
         if max(v_vis, v_gnss) < self.min_speed_mps:
             self._since = None

@@ -75,11 +75,12 @@ def test_monitor_turns_the_vision_verdict_into_untrusted():
 
 
 def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: float = 8.0, t_change_s: float = 5.0,
-                     realign_every_s: float | None = None):
+                     realign_every_s: float | None = None, jumps_m: dict[float, float] | None = None):
     """A vehicle flying east at speed_mps; our SLAM track (aligned to ENU metres) shrinks to
     scale_after × after t_change_s (a monocular scale collapse), GNSS ground speed is the truth +
     drift_mps (a walk-off). realign_every_s: a new alignment, 3 m east of the last, that often (GNSS
-    re-bootstraps moving the globalised track by that much)."""
+    re-bootstraps moving the globalised track by that much). jumps_m: {t: metres}: local mapping
+    moves the map, and the tracked camera with it, that far east at t (it stays moved)."""
     from companion.pipeline import SlamSpeedCheck
     from gis.align.fine import enu_sim3
     from gis.geodesy import LocalFrame
@@ -92,7 +93,7 @@ def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: floa
     x = 0.0
     for k in range(150):
         t = k * 0.1
-        x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0)
+        x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0) + (jumps_m or {}).get(round(t, 1), 0.0)
         shift_m = 3.0 * int(t / realign_every_s) if realign_every_s else 0.0
         T_ecef_slam = T_ecef_enu @ Sim3(1.0, np.eye(3), np.array([shift_m, 0.0, 0.0]))
         broken = check.update(t, np.array([x, 0.0, 60.0]), T_ecef_slam, origin.R_ecef_enu, speed_mps + drift_mps)
@@ -114,3 +115,9 @@ def test_slam_scale_collapse_is_caught_by_gnss_ground_speed():
     assert _speed_check_run(scale_after=1.0, realign_every_s=2.0) == (None, None)
     suspect_t, _ = _speed_check_run(scale_after=0.5, realign_every_s=2.0)
     assert suspect_t is not None and 5.0 < suspect_t <= 6.0
+    # local mapping moves the map under the camera by metres in one frame, back or forth (a `loop`
+    # flight's second lap: 3-9 m): not a scale break; the end-to-end displacement read 0.08-1.35
+    jumps = {3.0: -3.5, 7.0: 5.0, 7.3: 2.0, 11.0: 9.0}
+    assert _speed_check_run(scale_after=1.0, jumps_m=jumps) == (None, None)
+    suspect_t, broken_t = _speed_check_run(scale_after=0.5, jumps_m=jumps)
+    assert suspect_t is not None and 5.0 < suspect_t <= 6.0 and broken_t - suspect_t <= 0.6
