@@ -16,13 +16,17 @@ _CONFIG = typer.Option(None, "--config", "-c", help="YAML config file (default: 
 _CACHE = typer.Option(None, "--cache-dir", help="GIS cache directory (default: gis.cache_dir from the config)")
 
 
-def _gis_config(config: Optional[Path]):
+def _app_config(config: Optional[Path]):
     from companion.config import ConfigError, load_config
 
     try:
-        return load_config(config).gis
+        return load_config(config)
     except ConfigError as e:
         fail(str(e))
+
+
+def _gis_config(config: Optional[Path]):
+    return _app_config(config).gis
 
 
 def _cache(config: Optional[Path], cache_dir: Optional[Path]):
@@ -54,15 +58,6 @@ def gis_import(
                f"h {o.h0_ellipsoid_m:.1f} m (ellipsoid), CRS {model.source_crs}")
 
 
-def _model_sigma_m(config: Optional[Path]) -> float:
-    from companion.config import ConfigError, load_config
-
-    try:
-        return load_config(config).alignment.model_sigma_m
-    except ConfigError as e:
-        fail(str(e))
-
-
 def _georef_verdict(evidence, model_sigma_m: float) -> str:
     """What the flights so far say about a cached model's georeference (gis.align.georef)."""
     from gis.align.georef import GeorefCheck
@@ -91,7 +86,7 @@ def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE)
     except CacheCorrupt as e:
         fail(str(e))
     t = Table("site", "origin lat, lon", "radius m", "points", "CRS", "T_rough", "T_fine", "georeference vs GNSS", "sha256")
-    model_sigma_m = _model_sigma_m(config)
+    model_sigma_m = _app_config(config).alignment.model_sigma_m
     for e in entries:
         t.add_row(e.site_id, f"{e.origin.lat0_deg:.6f}, {e.origin.lon0_deg:.6f}", f"{e.radius_m:.0f}", str(e.n_points),
                   e.source_crs, "yes" if e.T_rough else "-", "yes" if e.T_fine else "-",

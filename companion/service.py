@@ -141,12 +141,13 @@ def run_service(cfg: AppConfig) -> int:
     def save_georef() -> None:
         """The evidence on the model's georeference, whenever a registration added to it."""
         nonlocal georef_n
+        if localizer.georef is None or localizer.georef.n == georef_n:  # (every frame: no copy unless it grew)
+            return
         ev = localizer.georef_evidence()
-        if ev is not None and ev.n != georef_n:
-            cache.save_georef(site_id, ev)
-            georef_n = ev.n
-            log_event(log, "georef_saved", f"GIS model georeference evidence saved ({ev.n} registrations vs GNSS, site {site_id})",
-                      n=ev.n)
+        cache.save_georef(site_id, ev)
+        georef_n = ev.n
+        log_event(log, "georef_saved", f"GIS model georeference evidence saved ({ev.n} registrations vs GNSS, site {site_id})",
+                  n=ev.n)
 
     def alignment_changed() -> None:
         """A newly accepted alignment goes to disk with the map soon (by the saver thread)."""
