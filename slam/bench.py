@@ -3,6 +3,8 @@
     python -m slam.bench --scenario nominal --frames 600 [--ablation] [--force-loss 300:15]
     python -m slam.bench --memory --minutes 10 [--fps 10] [--sample-every 300]
     python -m slam.bench --scenario loop --frames 600 --camera-fps 10 --attitude-prior both --repeat 3
+    python -m slam.bench --frames 300 --export seq.npz --jpeg-quality 75   # then, on a board or GPU machine:
+    python -m slam.bench --sequence seq.npz --ablation --device cuda:0 [--features]
 
 Prints per-frame tracking latency (wall and tracking-thread CPU, mean/P99), tracking ratio,
 ATE after Sim(3) alignment as % of path length, local-mapping and loop-closing times, map size
@@ -81,6 +83,80 @@ def render_sequence(scenario: str = "nominal", n_frames: int = 300, seed: int = 
         os.makedirs(cache_dir, exist_ok=True)
         np.savez(path, images=seq.images, T=seq.T_enu_cam, t=seq.t_s)
     return seq
+
+
+def save_sequence(seq: Sequence, path: str, jpeg_quality: int | None = None) -> None:
+    """Write a rendered sequence to one .npz that ``load_sequence`` reads without the simulator
+    (open3d): frames rendered on a workstation can then be replayed on a companion board or a
+    GPU machine. jpeg_quality: store the frames as JPEG (lossy, ~1/6 of the raw size at 75;
+    every configuration replayed from the file sees the same frames) instead of raw pixels."""
+    pr = seq.priors or []
+    arrays = dict(
+        name=np.array(seq.name), K=seq.camera.K, dist=seq.camera.dist,
+        size_px=np.array([seq.camera.width_px, seq.camera.height_px]), T=seq.T_enu_cam, t=seq.t_s,
+        fps=np.array(seq.fps),
+        prior_rpy_t=np.array([[a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad,
+                               np.nan if a.baro_alt_m is None else a.baro_alt_m,
+                               np.nan if a.gravity_sigma_rad is None else a.gravity_sigma_rad] for a in pr]).reshape(-1, 6),
+        prior_gravity=np.array([np.full(3, np.nan) if a.gravity_cam is None else a.gravity_cam for a in pr]).reshape(-1, 3))
+    if jpeg_quality is None:
+        arrays["images"] = seq.images
+    else:
+        import cv2
+
+        blobs = []
+        for im in seq.images:
+            ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+            if not ok:
+                raise ValueError(f"JPEG encoding of a {im.shape} frame failed")
+            blobs.append(buf.ravel())
+        arrays["jpeg"] = np.concatenate(blobs)
+        arrays["jpeg_end"] = np.cumsum([len(b) for b in blobs])
+    np.savez(path, **arrays)
+
+
+def load_sequence(path: str) -> Sequence:
+    """Read a sequence written by ``save_sequence`` (numpy and OpenCV only)."""
+    import cv2
+
+    d = np.load(path, allow_pickle=False)
+    if "images" in d:
+        images = d["images"]
+    else:
+        ends = d["jpeg_end"]
+        starts = np.r_[0, ends[:-1]]
+        images = np.array([cv2.imdecode(d["jpeg"][a:b], cv2.IMREAD_GRAYSCALE) for a, b in zip(starts, ends)])
+    w, h = (int(x) for x in d["size_px"])
+    if images.shape[1:] != (h, w) or len(images) != len(d["T"]):
+        raise ValueError(f"{path}: {images.shape} frames do not match {len(d['T'])} poses of {w}x{h} px")
+    priors = [AttitudePrior(float(r[0]), float(r[1]), float(r[2]), float(r[3]),
+                            None if np.isnan(r[4]) else float(r[4]), None if np.isnan(g).any() else g.copy(),
+                            None if np.isnan(r[5]) else float(r[5]))
+              for r, g in zip(d["prior_rpy_t"], d["prior_gravity"])]
+    return Sequence(str(d["name"]), CameraModel(w, h, d["K"], d["dist"]), images, d["T"], d["t"], float(d["fps"]),
+                    priors or None)
+
+
+def time_features(seq: Sequence, configs: list[tuple[str, SlamConfig]], warmup: int = 5) -> list[str]:
+    """Feature extraction alone, per frame (ms, wall): each configuration's extractor over every
+    frame of the sequence after ``warmup`` frames (the first call on a GPU loads its kernels). The
+    extractors return host arrays, so GPU work is finished when a call returns."""
+    from slam.features import make_extractor
+
+    rows = []
+    for name, cfg in configs:
+        ex = make_extractor(seq.camera, cfg)
+        for im in seq.images[:warmup]:
+            ex(im)
+        ms, n = [], []
+        for im in seq.images:
+            t0 = time.perf_counter()
+            f = ex(im)
+            ms.append((time.perf_counter() - t0) * 1e3)
+            n.append(len(f))
+        rows.append(f"  {name:24s} mean {np.mean(ms):6.2f} ms  P50 {_p(ms, 50):6.2f}  P99 {_p(ms, 99):6.2f}  "
+                    f"features/frame {np.mean(n):.0f}")
+    return rows
 
 
 @dataclass
@@ -597,15 +673,35 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--attitude-prior", choices=["off", "on", "both"], default="off",
                     help="feed the simulated autopilot's gravity direction (slam.use_attitude_prior); both: alternate off/on runs")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration (SLAM is not bit-reproducible)")
+    ap.add_argument("--export", metavar="FILE.npz", help="write the rendered frames, truth and priors to FILE and stop")
+    ap.add_argument("--jpeg-quality", type=int, default=None, help="--export: store frames as JPEG of this quality")
+    ap.add_argument("--sequence", metavar="FILE.npz", help="replay a sequence written by --export (no simulator needed)")
+    ap.add_argument("--features", action="store_true",
+                    help="time feature extraction alone: OpenCV ORB and the torch extractor on cpu and --device")
     a = ap.parse_args(argv)
     if a.memory:
         memory_main(a)
         return
     t0 = time.perf_counter()
-    start = start_frame(a.scenario, a.seed, a.camera_fps, a.start_s, a.frames)
-    seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, start=start, fps=a.camera_fps)
-    print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' from frame {start} in {time.perf_counter() - t0:.0f} s")
+    if a.sequence:
+        seq = load_sequence(a.sequence)
+        print(f"loaded {len(seq.images)} frames of '{seq.name}' from {a.sequence} in {time.perf_counter() - t0:.0f} s")
+    else:
+        start = start_frame(a.scenario, a.seed, a.camera_fps, a.start_s, a.frames)
+        seq = render_sequence(a.scenario, a.frames, a.seed, a.cache_dir, start=start, fps=a.camera_fps)
+        print(f"rendered/loaded {len(seq.images)} frames of '{a.scenario}' from frame {start} in {time.perf_counter() - t0:.0f} s")
+    if a.export:
+        save_sequence(seq, a.export, a.jpeg_quality)
+        print(f"wrote {a.export} ({os.path.getsize(a.export) / 1e6:.1f} MB)")
+        return
     base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
+    if a.features:
+        cpu = base.model_copy(update=dict(feature_backend="cpu"))
+        configs = [("OpenCV ORB (cpu)", cpu)] + [(f"torch patch-parallel ({d})", cpu.model_copy(
+            update=dict(feature_backend="torch", torch_device=d))) for d in dict.fromkeys(["cpu", a.device])]
+        print(f"feature extraction per frame, {seq.camera.width_px}x{seq.camera.height_px}, {len(seq.images)} frames:")
+        print("\n".join(time_features(seq, configs)))
+        return
     if a.loop_ablation:
         res = loop_ablation(seq, base)
         for mode, ms, loops, err in res:

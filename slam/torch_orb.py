@@ -56,6 +56,8 @@ class TorchOrb:
         self.blur = (g / g.sum())
         self.sobel = torch.tensor([[-1, 0, 1], [-2, 0, 2], [-1, 0, 1]], dtype=torch.float32, device=self.device) / 8
         self.bit_w = (2 ** torch.arange(7, -1, -1, device=self.device)).to(torch.uint8)
+        if self.device.type != "cpu":  # create the context and load the kernels now, not on the first camera frame
+            self(np.random.default_rng(0).integers(0, 256, (h, w), dtype=np.uint8))
 
     def _sep_blur(self, x: torch.Tensor) -> torch.Tensor:
         k = self.blur

@@ -200,21 +200,50 @@ def test_place_index_finds_the_revisited_place():
     assert all(c.kf_id != 0 for c in idx.query(query, exclude_after_kf_id=-1))
 
 
-def test_torch_and_cpu_features_both_match_a_warped_image():
+def _needs_cuda():
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_torch_and_cpu_features_both_match_a_warped_image(device):
     pytest.importorskip("torch")
+    if device == "cuda":
+        _needs_cuda()
     from slam.torch_orb import make_orb_torch
 
     cam = CameraModel(512, 512, K)
     img = cv2.resize(data.camera(), (512, 512))
     M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
     warped = cv2.warpAffine(img, M, (512, 512))
-    for ex in (make_orb_cpu(cam, 800), make_orb_torch(cam, 800, 256, "cpu")):
+    for ex in (make_orb_cpu(cam, 800), make_orb_torch(cam, 800, 256, device)):
         a, b = ex(img), ex(warped)
         assert len(a) > 400
         pairs = match_bf(a.desc, b.desc, ratio=0.8)
         pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
         ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
         assert ok.sum() > 100 and ok.mean() > 0.8
+
+
+@pytest.mark.gpu
+def test_torch_features_on_cuda_are_those_on_the_cpu():
+    """The GA path on a GPU computes what it computes on a CPU: the same corners (float rounding
+    in the convolutions, TF32 on a GPU, may reorder near-ties) and the same descriptors for them
+    up to a few bits whose two samples are nearly equal."""
+    _needs_cuda()
+    from slam.torch_orb import make_orb_torch
+
+    cam = CameraModel(512, 512, K)
+    img = cv2.resize(data.camera(), (512, 512))
+    a, b = (make_orb_torch(cam, 800, 256, d)(img) for d in ("cpu", "cuda"))
+    assert len(a) > 400 and abs(len(a) - len(b)) <= 0.02 * len(a)
+    key_a = {tuple(p): i for i, p in enumerate(np.round(a.uv_px, 3))}
+    common = [(key_a[tuple(p)], j) for j, p in enumerate(np.round(b.uv_px, 3)) if tuple(p) in key_a]
+    assert len(common) >= 0.9 * len(a)
+    ia, ib = np.array(common).T
+    bits = np.unpackbits(a.desc[ia] ^ b.desc[ib], axis=1).sum(axis=1)
+    assert np.median(bits) <= 2 and np.percentile(bits, 95) <= 12
 
 
 def test_cpu_features_on_a_dark_image_come_from_its_normalised_contrast_and_still_match():
@@ -306,3 +335,68 @@ def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
     assert triangulation_partners(m, kf, ids, 0.05) == [ids[2], ids[1]]  # 13 m and 23 m away, newest first
     assert triangulation_partners(m, kf, ids, 0.0) == ids[-3:-1]
     assert triangulation_partners(m, kf, ids, 0.4) == [ids[-2]]  # nothing 40 m away: the previous keyframe
+
+
+# --- sequences saved for replay elsewhere (slam.bench --export / --sequence) --------------------
+
+def _textured_sequence(n: int = 6):
+    from slam.bench import Sequence
+    from slam.types import AttitudePrior
+
+    base = cv2.resize(data.camera(), (320, 240))
+    images = np.array([np.roll(base, 3 * i, axis=1) for i in range(n)])
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, 0, 3] = np.arange(n) * 0.1
+    t = np.arange(n) / 30.0
+    priors = [AttitudePrior(ti, 0.01, -0.02, 1.5, None if i % 2 else 12.5,
+                            None if i == 0 else np.array([0.0, 0.1, 0.995]), None if i < 3 else 0.02)
+              for i, ti in enumerate(t)]
+    cam = CameraModel(320, 240, np.array([[250.0, 0, 160], [0, 250, 120], [0, 0, 1]]), np.array([0.01, -0.002, 0, 0, 0]))
+    return Sequence("textured", cam, images, T, t, 30.0, priors)
+
+
+def test_a_saved_sequence_replays_the_same_frames_truth_and_priors(tmp_path):
+    from slam.bench import load_sequence, save_sequence
+
+    seq = _textured_sequence()
+    save_sequence(seq, str(tmp_path / "raw.npz"))
+    back = load_sequence(str(tmp_path / "raw.npz"))
+    assert back.name == "textured" and back.fps == 30.0
+    assert np.array_equal(back.images, seq.images) and np.array_equal(back.T_enu_cam, seq.T_enu_cam)
+    assert np.array_equal(back.camera.K, seq.camera.K) and np.array_equal(back.camera.dist, seq.camera.dist)
+    assert (back.camera.width_px, back.camera.height_px) == (320, 240)
+    for a, b in zip(seq.priors, back.priors):
+        assert (a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.baro_alt_m, a.gravity_sigma_rad) == \
+               (b.t_s, b.roll_rad, b.pitch_rad, b.yaw_rad, b.baro_alt_m, b.gravity_sigma_rad)
+        assert (a.gravity_cam is None and b.gravity_cam is None) or np.array_equal(a.gravity_cam, b.gravity_cam)
+
+    save_sequence(seq, str(tmp_path / "jpeg.npz"), jpeg_quality=75)
+    lossy = load_sequence(str(tmp_path / "jpeg.npz"))
+    assert (tmp_path / "jpeg.npz").stat().st_size < 0.5 * (tmp_path / "raw.npz").stat().st_size
+    assert lossy.images.shape == seq.images.shape and lossy.images.dtype == np.uint8
+    err = np.abs(lossy.images.astype(float) - seq.images)
+    assert 0 < err.mean() < 5  # lossy, but the same scene
+
+
+def test_a_sequence_file_whose_frames_do_not_match_its_poses_is_refused(tmp_path):
+    from slam.bench import load_sequence, save_sequence
+
+    seq = _textured_sequence()
+    save_sequence(seq, str(tmp_path / "s.npz"))
+    d = dict(np.load(tmp_path / "s.npz"))
+    d["size_px"] = np.array([640, 480])
+    np.savez(tmp_path / "bad.npz", **d)
+    with pytest.raises(ValueError, match="do not match"):
+        load_sequence(str(tmp_path / "bad.npz"))
+
+
+def test_feature_timing_runs_each_extractor_on_a_saved_sequence(tmp_path, capsys):
+    pytest.importorskip("torch")
+    from slam.bench import main, save_sequence
+
+    save_sequence(_textured_sequence(), str(tmp_path / "s.npz"))
+    main(["--sequence", str(tmp_path / "s.npz"), "--features"])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if "features/frame" in line]
+    assert len(rows) == 2 and "OpenCV ORB (cpu)" in rows[0] and "torch patch-parallel (cpu)" in rows[1]
+    assert all(float(r.split("features/frame")[1]) > 100 for r in rows)
