@@ -22,6 +22,7 @@ from companion.config import AppConfig
 from companion.evaluate import FixErrors, GnssReference, fix_errors, gnss_ecef, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
+from gis.align.journal import Journal
 from gis.geodesy import R_NED_ENU, R_ecef_enu
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
@@ -278,7 +279,7 @@ class SimFlight:
 def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel, T_body_cam: np.ndarray,
             model: GisModel | None, autopilot: str | None = None, output: str | None = None,
             progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
-            p_body_gnss_m=(0.0, 0.0, 0.0)) -> SimFlight:
+            p_body_gnss_m=(0.0, 0.0, 0.0), journal: Journal | None = None) -> SimFlight:
     """Frames (SimStep-like: frame, gnss, attitude, truth) → Localizer → Bridge → simulated autopilot.
 
     The one loop behind ``demo`` and ``bench``: the autopilot (UDP 127.0.0.1) is fed the vehicle's
@@ -287,6 +288,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
     rate, timeout and hysteresis is judged in flight time while the loop runs as fast as it can.
     ``repeatable``: local mapping and fine-tuning keep step with the flight clock (Localizer.settle),
     so the same inputs give the same fixes to the bit; otherwise they run free, as live.
+    ``journal``: every registration's inputs and outcome are written there (gis.align.journal).
     """
     from mavlink_bridge.bridge import Bridge
     from mavlink_bridge.sim_autopilot import SimAutopilot
@@ -300,6 +302,8 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
     mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
     localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable, p_body_gnss_m=p_body_gnss_m)
+    if localizer.worker is not None:
+        localizer.worker.journal = journal
     out_msg = output.upper()  # the fix message; heartbeats etc. are not fixes
     run, alignments, last_key = RunLog(), [], None
     try:

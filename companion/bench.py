@@ -36,6 +36,7 @@ from companion.app import REPEATABLE_LAG_S, RunLog, fly_sim, summarize
 from companion.config import AppConfig
 from companion.evaluate import fix_errors
 from gis.align.fine import enu_sim3
+from gis.align.journal import Journal, write_meta, write_truth
 from gis.align.rough import alignment_error_m
 from gis.geodesy import LocalFrame
 from gis.model import GisModel
@@ -179,10 +180,11 @@ def _window(scenario, start: int):
 
 def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int = 0, fps: float = 10.0,
                    work_dir: Path, progress: Callable[[int, int, str], None] | None = None,
-                   receiver: str | None = None, repeatable: bool = False) -> BenchRun:
+                   receiver: str | None = None, repeatable: bool = False, journal_dir: Path | None = None) -> BenchRun:
     """n_frames of a simulator scenario in the window of ``bench_window_s``, GNSS dropped in it.
     receiver: the GNSS receiver grade before the loss (GnssSpec.base), default the scenario's.
-    repeatable: see companion.app.fly_sim."""
+    repeatable: see companion.app.fly_sim. journal_dir: write the registration journal there
+    (gis.align.journal), with the true camera positions."""
     from companion.sim import make_scenario
     from companion.sim.gis_export import export_gis
     from companion.sim.gnss import GnssEvent
@@ -203,10 +205,12 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
+    journal = _open_journal(journal_dir, files.mesh_ply, cfg, scenario.origin)
     f = fly_sim(cfg, _window(scenario, start), n_frames, scenario.camera, scenario.T_body_cam, model, progress=progress,
-                repeatable=repeatable, p_body_gnss_m=scenario.spec.gnss_antenna_m)
+                repeatable=repeatable, p_body_gnss_m=scenario.spec.gnss_antenna_m, journal=journal)
     wall = time.perf_counter() - t0
     res = sampler.stop()
+    _close_journal(journal, f.run)
     br = BenchRun(name, f.run, scenario.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,
                   n_frames / fps, t_loss, t_start, receiver=spec.gnss.base, repeatable=repeatable)
     for mode in ("standalone", "dgps"):
@@ -214,8 +218,26 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     return br
 
 
+def _open_journal(folder: Path | None, model_file: Path, cfg: AppConfig, origin: LocalFrame) -> Journal | None:
+    if folder is None:
+        return None
+    write_meta(folder, model_file, cfg.gis.sample_spacing_m, cfg.alignment.model_dump(mode="json"),
+               (origin.lat0_deg, origin.lon0_deg, origin.h0_ellipsoid_m), cfg.gis.footprint_ground_h_msl_m)
+    return Journal(folder)
+
+
+def _close_journal(journal: Journal | None, run: RunLog) -> None:
+    """The true camera centre at every frame that has one, beside the journal's registrations."""
+    if journal is None:
+        return
+    recs = [r for r in run.records if r.seq in run.truth_cam_ecef_m]
+    write_truth(journal.folder, np.array([r.t_s for r in recs]),
+                np.array([run.truth_cam_ecef_m[r.seq] for r in recs]).reshape(-1, 3))
+
+
 def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None,
-                  progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False) -> BenchRun:
+                  progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
+                  journal_dir: Path | None = None) -> BenchRun:
     """Any dataset in the documented layout (docs/DATASET.md); it needs truth for the error figures."""
     from companion.dataset import read_dataset
     from gis.loaders import load_model
@@ -227,10 +249,12 @@ def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
+    journal = _open_journal(journal_dir, ds.gis_files[0], cfg, ds.origin)
     f = fly_sim(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress=progress, repeatable=repeatable,
-                p_body_gnss_m=ds.p_body_gnss_m)
+                p_body_gnss_m=ds.p_body_gnss_m, journal=journal)
     wall = time.perf_counter() - t0
     res = sampler.stop()
+    _close_journal(journal, f.run)
     return BenchRun(ds.name, f.run, ds.origin, model, f.alignments, f.map_points_slam, f.last_map_key, res, wall,
                     float(ds.frame_t_s[n - 1] - ds.frame_t_s[0]), repeatable=repeatable)
 
@@ -632,19 +656,21 @@ Progress = Callable[[str, int, int, str], None]  # (run label, frame, total, bri
 
 def bench_one(cfg: AppConfig, out_dir: Path, *, scenario: str | None = None, dataset: Path | None = None,
               n_frames: int = 300, seed: int = 0, fps: float = 10.0, ablation: bool = False, sweep_extents_m: tuple[float, ...] = (),
-              progress: Progress | None = None, receiver: str | None = None, repeatable: bool = False) -> tuple[dict, BenchRun]:
-    """One scenario (or dataset): run, figures, optional ablation and map-size sweep, outputs."""
+              progress: Progress | None = None, receiver: str | None = None, repeatable: bool = False,
+              journal: bool = False) -> tuple[dict, BenchRun]:
+    """One scenario (or dataset): run, figures, optional ablation and map-size sweep, outputs.
+    journal: the main run's registration journal in ``out_dir/registrations`` (gis.align.journal)."""
     if (scenario is None) == (dataset is None):
         raise ValueError("give exactly one of scenario or dataset")
 
-    def go(c: AppConfig, label: str) -> BenchRun:
+    def go(c: AppConfig, label: str, journal_dir: Path | None = None) -> BenchRun:
         cb = (lambda k, n, st: progress(label, k, n, st)) if progress else None
         if dataset is not None:
-            return bench_dataset(c, dataset, n_frames, cb, repeatable=repeatable)
+            return bench_dataset(c, dataset, n_frames, cb, repeatable=repeatable, journal_dir=journal_dir)
         return bench_scenario(c, scenario, n_frames, seed=seed, fps=fps, work_dir=out_dir, progress=cb, receiver=receiver,
-                              repeatable=repeatable)
+                              repeatable=repeatable, journal_dir=journal_dir)
 
-    br = go(cfg, scenario or str(dataset))
+    br = go(cfg, scenario or str(dataset), out_dir / "registrations" if journal else None)
     fig = figures(br, cfg)
     if ablation:
         rows = []

@@ -23,6 +23,7 @@ def bench(
     seeds: Optional[str] = typer.Option(None, "--seeds", help="with --suite: run it once per seed (e.g. 0,1,2,3) into OUT/seed_N/ and print the error after the loss per seed, mean and median (one run is not reproducible to better than ~0.5 m)"),
     receiver: Optional[str] = typer.Option(None, "--receiver", help="simulated GNSS receiver grade before the loss: standalone (~4 m 1-σ) | dgps (SBAS/DGPS, ~0.8 m) | urban; default: the scenario's (standalone)"),
     repeatable: bool = typer.Option(False, "--repeatable", help="local mapping and fine-tuning keep step with the flight clock (each keyframe mapped before the next frame, registrations adopted 0.3 s of flight time after submission): the same run gives the same fixes to the bit, for A/B comparisons; optimistic about mapping latency, so free-running (the default) is what a live system sees"),
+    journal: bool = typer.Option(False, "--journal", help="write every registration's inputs and outcome, and the true camera track, to OUT/registrations/ for offline replay: python -m gis.align.replay OUT/registrations"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Run the real pipeline over a scenario / dataset / the suite and write bench.json, bench.md and plots."""
@@ -47,6 +48,8 @@ def bench(
         fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
     if seed_list and not suite:
         fail("--seeds goes with --suite")
+    if journal and suite:
+        fail("--journal goes with one --scenario or --dataset, not --suite")
     try:
         extents = tuple(float(x) for x in sweep.split(",")) if sweep else ()
     except ValueError:
@@ -77,7 +80,7 @@ def bench(
             else:
                 fig, _ = bench_one(cfg, out, scenario=scenario, dataset=dataset, n_frames=frames, seed=seed, fps=fps,
                                    ablation=ablation, sweep_extents_m=extents, progress=progress, receiver=receiver,
-                                   repeatable=repeatable)
+                                   repeatable=repeatable, journal=journal)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
     if seed_list:  # plain: Markdown tables must not wrap

@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation
 from gis.align.bootstrap import gnss_bootstrap
 from gis.align.georef import GeorefCheck, GeorefCorrection, GeorefEvidence, IcpMeasurement
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
+from gis.align.journal import Journal, RegistrationJob
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
 from gis.sim3 import Sim3, umeyama
@@ -420,6 +421,7 @@ class FineTuneWorker:
         self.wall_ms: list[float] = []
         self.cpu_ms: list[float] = []
         self.correction: GeorefCorrection | None = None  # sent with every job
+        self.journal: Journal | None = None  # writes each registration's inputs and outcome (gis.align.journal)
         self._lock = threading.Lock()
         self._proc = ForkedWorker("fine-tuning", initializer=_adopt_tuner, initargs=(tuner,))
 
@@ -428,10 +430,11 @@ class FineTuneWorker:
         with self._lock:
             if self.busy.is_set():
                 return False
+            job = RegistrationJob(t_s, points_slam, initial, center_slam, camera_h_ell_m, camera_h_sigma_m, self.correction)
             fut = self._proc.submit(_register_in_worker, points_slam, initial, center_slam, t_s, camera_h_ell_m,
                                     camera_h_sigma_m, self.correction)
             self.busy.set()
-        self._hand_over(t_s, fut, self._done)
+        self._hand_over(t_s, fut, lambda f: self._done(f, job))
         return True
 
     def check_scale(self, points_slam: np.ndarray, alignment: Alignment, center_slam: np.ndarray,
@@ -471,7 +474,7 @@ class FineTuneWorker:
         self.checking.clear()
         self._on_scale_check(alignment, chk)
 
-    def _done(self, fut: Future) -> None:
+    def _done(self, fut: Future, job: RegistrationJob) -> None:
         try:
             alignment, reason, ms, cpu_ms, icp = fut.result()
         except CancelledError:
@@ -486,6 +489,11 @@ class FineTuneWorker:
         if math.isfinite(ms):
             self.wall_ms.append(ms)
             self.cpu_ms.append(cpu_ms)
+        if self.journal is not None:
+            try:
+                self.journal.record(job, alignment, reason)
+            except OSError as e:  # a full disk must not stop the registrations
+                log.warning("registration journal not written: %s", e)
         try:  # busy until the result is adopted: whoever sees the worker free sees its alignment
             self._on_result(alignment, reason, ms, icp)
         finally:

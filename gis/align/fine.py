@@ -426,13 +426,8 @@ class FineTuner:
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) < cfg.min_points:
             return Registration(None, f"only {len(pts)} SLAM points (< min_points {cfg.min_points})", n_source=len(pts))
-        T_enu_slam = compose(self._T_enu_ecef, initial.T_ecef_slam)
-        src = T_enu_slam.apply(pts)
-        c_slam = np.median(pts, axis=0) if center_slam is None else np.asarray(center_slam, float).reshape(3)
-        c = T_enu_slam.apply(c_slam)
+        T_enu_slam, c, src = self._source(pts, initial, center_slam)
         half = cfg.crop_size_m / 2
-        src = src[_in_square(src, c, half)] - c
-        src = _subsample(_voxel(src, cfg.source_voxel_m), MAX_SOURCE_POINTS)
         if len(src) < cfg.min_points:
             return Registration(None, f"only {len(src)} SLAM points in the {cfg.crop_size_m:.0f} m crop", n_source=len(src))
         prior = self._prior_at(initial, c, T_enu_slam, cfg)
@@ -530,6 +525,39 @@ class FineTuner:
             center_slam=c_new_slam, scale_sigma=float(np.sqrt(P_post[6, 6])),
         )
         return Registration(alignment, ok, wall_ms=1e3 * (time.perf_counter() - t0), **common)
+
+    def _source(self, pts: np.ndarray, initial: Alignment, center_slam: np.ndarray | None) -> tuple[Sim3, np.ndarray, np.ndarray]:
+        """(T_enu_slam of the prior, crop centre c in model ENU, the SLAM points in the crop square
+        about c in ENU centred on c, voxelised and subsampled): what the ICP registers."""
+        cfg = self.config
+        T_enu_slam = compose(self._T_enu_ecef, initial.T_ecef_slam)
+        src = T_enu_slam.apply(pts)
+        c_slam = np.median(pts, axis=0) if center_slam is None else np.asarray(center_slam, float).reshape(3)
+        c = T_enu_slam.apply(c_slam)
+        src = src[_in_square(src, c, cfg.crop_size_m / 2)] - c
+        return T_enu_slam, c, _subsample(_voxel(src, cfg.source_voxel_m), MAX_SOURCE_POINTS)
+
+    def optima(self, points_slam: np.ndarray, initial: Alignment, center_slam: np.ndarray,
+               radii_m: tuple[float, ...] = (3.0, 6.0, 9.0), directions: int = 8) -> list[tuple[np.ndarray, float, float]]:
+        """Where the ICP converges from the prior and from starts shifted horizontally by each
+        radius in ``directions`` directions: (the camera at the optimum, ECEF m; fitness; inlier
+        RMSE m) per start, the prior's own start first. A diagnostic (gis.align.replay): a
+        registration whose starts all reach one optimum measures the position; starts that stop
+        metres apart, at equal fitness, show the ICP keeps near wherever it starts."""
+        cfg = self.config
+        pts = np.asarray(points_slam, float).reshape(-1, 3)
+        _, c, src = self._source(pts[np.all(np.isfinite(pts), axis=1)], initial, center_slam)
+        half = cfg.crop_size_m / 2
+        crop = self._crops.get(c, half + cfg.max_correspondence_m)
+        min_corr = 1.5 * crop.spacing_m(c, half)
+        out = []
+        starts = [np.zeros(3)] + [r * np.array([math.cos(a), math.sin(a), 0.0]) for r in radii_m
+                                  for a in np.linspace(0, 2 * math.pi, directions, endpoint=False)]
+        for t0 in starts:
+            T = _icp(src, crop, c, Sim3(1.0, np.eye(3), t0), cfg, min_corr)
+            ev = _evaluate(src, crop, c, T, cfg, min_corr)
+            out.append((self._T_ecef_enu.apply((c + T.t)[None])[0], ev.fitness, ev.rmse_m))
+        return out
 
     def in_crop(self, points_slam: np.ndarray, T_ecef_slam: Sim3, center_slam: np.ndarray) -> np.ndarray:
         """(N,) bool: the SLAM points a registration about ``center_slam`` under ``T_ecef_slam``
