@@ -12,7 +12,14 @@ from gis.align.journal import (Journal, RegistrationJob, read_journal, read_reco
 from gis.align.replay import format_rows, main, replay
 from gis.config import AlignmentConfig
 from gis.types import Alignment, AlignmentSource
-from tests.test_gis_align import ORIGIN, T_ECEF_SLAM, _distorted_cloud, _prior_about, _slam, city  # noqa: F401 (fixture)
+from gis.model import GisModel
+from gis.synthetic import box_city_model
+from tests.test_gis_align import ORIGIN, T_ECEF_SLAM, _distorted_cloud, _prior_about, _slam
+
+
+@pytest.fixture(scope="module")
+def city() -> GisModel:
+    return box_city_model(600.0, ORIGIN, seed=1, spacing_m=1.0)
 
 
 def _assert_same_alignment(a: Alignment, b: Alignment) -> None:
@@ -21,6 +28,13 @@ def _assert_same_alignment(a: Alignment, b: Alignment) -> None:
     assert (a.source, a.t_s, a.reset_counter, a.sigma_m, a.fitness, a.rmse_m, a.n_points, a.map_id, a.scale_sigma) == \
            (b.source, b.t_s, b.reset_counter, b.sigma_m, b.fitness, b.rmse_m, b.n_points, b.map_id, b.scale_sigma)
     assert (a.center_slam is None and b.center_slam is None) or np.array_equal(a.center_slam, b.center_slam)
+
+
+def _enu_axes() -> np.ndarray:
+    """ECEF → horizontal (east, north) axes at the test site, (3, 2)."""
+    from gis.geodesy import R_ecef_enu
+
+    return R_ecef_enu(ORIGIN.lat0_deg, ORIGIN.lon0_deg)[:, :2]
 
 
 def test_a_record_reads_back_as_written(tmp_path):
@@ -92,6 +106,15 @@ def test_the_worker_journals_its_registrations_and_a_replay_decides_as_the_fligh
     assert all(r.fused_err_h_m < 0.6 * r.prior_err_h_m and r.fused_err_h_m <= 3 * r.sigma_m for r in rows)
     assert all(r.scan.n_starts == 25 and 1 <= r.scan.n_optima <= 25 and np.isfinite(r.scan.best_err_h_m) for r in rows)
     assert "2 of 2 accepted" in format_rows(rows)
+
+    # as a chain, the second registration starts from the first one's replayed result, not its recorded prior
+    chained = replay(records, city, config, read_truth(tmp_path), chain=True)
+    assert chained[0].as_in_flight and chained[0].prior_err_h_m == rows[0].prior_err_h_m
+    first = adopted[0][0]
+    cam2 = _slam(cams[1])[None]
+    assert chained[1].prior_err_h_m == pytest.approx(
+        np.linalg.norm((first.T_ecef_slam.apply(cam2) - T_ECEF_SLAM.apply(cam2))[0] @ _enu_axes()), abs=1e-4)
+    assert chained[1].prior_err_h_m != pytest.approx(rows[1].prior_err_h_m, abs=0.05)
 
     # a changed setting is replayed as such: with a fitness gate no registration passes, both are refused
     strict = replay(records, city, config.model_copy(update=dict(min_fitness=0.99)))

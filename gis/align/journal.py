@@ -128,7 +128,7 @@ def read_record(path: Path) -> JournalRecord:
                                   np.array(d["center"]), None if np.isnan(baro[0]) else float(baro[0]),
                                   None if np.isnan(baro[1]) else float(baro[1]), corr)
             return JournalRecord(job, _alignment_from(d, "result_"), str(d["reason"]))
-    except (KeyError, ValueError, OSError) as e:
+    except (KeyError, ValueError, TypeError, OSError) as e:
         raise ValueError(f"{path}: not a readable registration record ({type(e).__name__}: {e})") from e
 
 

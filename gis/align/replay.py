@@ -1,13 +1,15 @@
 """Replay a registration journal (gis.align.journal) against its GIS model, offline.
 
-    python -m gis.align.replay out/bench/registrations [--after T] [--scan] [--set key=value ...]
+    python -m gis.align.replay out/bench/registrations [--after T] [--chain] [--scan] [--set key=value ...]
 
 Each recorded registration runs again through ``FineTuner.register`` with its recorded inputs
 (prior, points, crop centre, barometer, georeference correction) and, by default, the recorded
 alignment configuration; ``--set`` changes a setting of it (``--set slam_drift_fraction=0.06``),
 so a change to the measurement model is judged on a flight's real registrations in seconds.
 With the journal's ``truth.npz`` each line says how far from the true camera (horizontally) the
-prior, the ICP alone and the fused result were, against what they claimed. ``--scan`` also starts
+prior, the ICP alone and the fused result were, against what they claimed. ``--chain`` starts each
+registration from the one the replay accepted before it, as in a GNSS denial, so a changed setting
+carries through (``--after`` the loss's time, to begin at the denial). ``--scan`` also starts
 the ICP from 24 points 3/6/9 m about the prior (``FineTuner.optima``) and says how many distinct
 optima those starts reach, how far apart, and how far the best-fitting one is from the truth.
 """
@@ -25,6 +27,7 @@ from gis.align.journal import JournalRecord, read_journal, read_meta, read_truth
 from gis.config import AlignmentConfig
 from gis.geodesy import R_ecef_enu, ecef_to_geodetic
 from gis.model import GisModel
+from gis.types import Alignment
 
 CLUSTER_M = 1.0  # optima closer than this are one
 
@@ -69,9 +72,9 @@ def _same(a, b) -> bool:
     return bool(np.allclose(a.T_ecef_slam.matrix(), b.T_ecef_slam.matrix(), rtol=1e-6, atol=1e-6))
 
 
-def _scan(tuner: FineTuner, rec: JournalRecord, truth: np.ndarray | None) -> Scan:
-    job = rec.job
-    found = tuner.optima(job.points_slam, job.initial, job.center_slam)
+def _scan(tuner: FineTuner, points_slam: np.ndarray, prior: Alignment, center_slam: np.ndarray,
+          truth: np.ndarray | None) -> Scan:
+    found = tuner.optima(points_slam, prior, center_slam)
     p = np.array([x[0] for x in found])
     lat, lon, _ = ecef_to_geodetic(p[0])
     en = (p - p[0]) @ R_ecef_enu(float(lat), float(lon))[:, :2]  # horizontal offsets from the prior's optimum
@@ -85,23 +88,29 @@ def _scan(tuner: FineTuner, rec: JournalRecord, truth: np.ndarray | None) -> Sca
 
 
 def replay(records: list[JournalRecord], model: GisModel, config: AlignmentConfig,
-           truth: dict[float, np.ndarray] | None = None, scan: bool = False) -> list[Replayed]:
+           truth: dict[float, np.ndarray] | None = None, scan: bool = False, chain: bool = False) -> list[Replayed]:
+    """Each record's registration again. chain: from the second record on, the prior is the last
+    alignment this replay accepted (as in a GNSS denial, where each registration starts from the
+    one before), not the recorded one, so a changed setting carries through the chain."""
     tuner = FineTuner(model, config)
     out = []
+    last: Alignment | None = None
     for rec in records:
         job = rec.job
+        prior = last if chain and last is not None else job.initial
         tuner.set_correction(job.correction)
-        reg = tuner.register(job.points_slam, job.initial, job.t_s, job.initial.reset_counter, job.center_slam,
-                             job.initial.map_id, job.camera_h_ell_m, job.camera_h_sigma_m)
+        reg = tuner.register(job.points_slam, prior, job.t_s, prior.reset_counter, job.center_slam,
+                             prior.map_id, job.camera_h_ell_m, job.camera_h_sigma_m)
+        last = reg.alignment or last
         tr = None if truth is None else truth.get(round(job.t_s, 3))
         camera = np.asarray(job.center_slam, float)[None]
         a = reg.alignment
         icp_sigma = math.sqrt(np.trace(reg.icp.cov_enu_m2[:2, :2]) / 2) if reg.icp is not None else math.nan
         out.append(Replayed(
-            job.t_s, reg.reason, _same(a, rec.alignment), _h_err(job.initial.T_ecef_slam.apply(camera)[0], tr),
+            job.t_s, reg.reason, _same(a, rec.alignment), _h_err(prior.T_ecef_slam.apply(camera)[0], tr),
             _h_err(None if reg.icp is None else reg.icp.p_ecef_m, tr), icp_sigma,
             _h_err(None if a is None else a.T_ecef_slam.apply(camera)[0], tr), reg.sigma_m if a is not None else math.nan,
-            reg.fitness, reg.spread_m, reg.nis, _scan(tuner, rec, tr) if scan else None))
+            reg.fitness, reg.spread_m, reg.nis, _scan(tuner, job.points_slam, prior, job.center_slam, tr) if scan else None))
     return out
 
 
@@ -125,14 +134,23 @@ def format_rows(rows: list[Replayed]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from gis.loaders import load_model
-
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("journal", type=Path)
     ap.add_argument("--after", type=float, default=-math.inf, help="only registrations at or after this flight time (s)")
     ap.add_argument("--scan", action="store_true", help="also the optima reached from 24 starts about the prior")
+    ap.add_argument("--chain", action="store_true",
+                    help="each registration from the one this replay accepted before it (a denial's chain), not its recorded prior")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="alignment setting to change (repeatable)")
     a = ap.parse_args(argv)
+    try:
+        _run(a)
+    except (ValueError, FileNotFoundError) as e:  # unreadable journal or model: say which and why
+        raise SystemExit(f"replay: {e}") from e
+
+
+def _run(a: argparse.Namespace) -> None:
+    from gis.loaders import load_model
+
     meta = read_meta(a.journal)
     over = {}
     for kv in a.set:
@@ -145,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"{a.journal}: the journal names no GIS model file")
     model = load_model(meta["model_file"], meta["sample_spacing_m"], meta.get("footprint_ground_h_msl_m"))
     records = [r for r in read_journal(a.journal) if r.job.t_s >= a.after]
-    print(format_rows(replay(records, model, config, read_truth(a.journal), scan=a.scan)))
+    print(format_rows(replay(records, model, config, read_truth(a.journal), scan=a.scan, chain=a.chain)))
 
 
 if __name__ == "__main__":
