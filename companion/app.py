@@ -22,8 +22,8 @@ from companion.config import AppConfig
 from companion.evaluate import FixErrors, GnssReference, fix_errors, gnss_ecef, stats, write_csv, write_geojson, write_report, write_tum
 from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
-from gis.align.journal import Journal
-from gis.geodesy import R_NED_ENU, R_ecef_enu
+from gis.align.journal import Journal, write_meta
+from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu
 from gis.globalizer import Globalizer
 from gis.loaders import load_model
 from gis.model import GisModel
@@ -276,6 +276,14 @@ class SimFlight:
     bridge_sent: dict
 
 
+def open_journal(folder: Path, model_file: Path, cfg: AppConfig, origin: LocalFrame) -> Journal:
+    """A registration journal in ``folder`` (gis.align.journal) with what a replay needs to load the
+    same model (``model_file`` as ``cfg.gis`` loads it) and run the same alignment settings."""
+    write_meta(folder, model_file, cfg.gis.sample_spacing_m, cfg.alignment.model_dump(mode="json"),
+               (origin.lat0_deg, origin.lon0_deg, origin.h0_ellipsoid_m), cfg.gis.footprint_ground_h_msl_m)
+    return Journal(folder)
+
+
 def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel, T_body_cam: np.ndarray,
             model: GisModel | None, autopilot: str | None = None, output: str | None = None,
             progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
@@ -415,8 +423,6 @@ def _wait_attitude(bridge, t_s: float, timeout_s: float = 0.05):
 
 
 def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
-    from gis.geodesy import LocalFrame
-
     ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
     return float(np.hypot(ned[0], ned[1]))
 

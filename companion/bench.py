@@ -32,11 +32,11 @@ from typing import Callable
 import numpy as np
 import psutil
 
-from companion.app import REPEATABLE_LAG_S, RunLog, fly_sim, summarize
+from companion.app import REPEATABLE_LAG_S, RunLog, fly_sim, open_journal, summarize
 from companion.config import AppConfig
 from companion.evaluate import fix_errors
 from gis.align.fine import enu_sim3
-from gis.align.journal import Journal, write_meta, write_truth
+from gis.align.journal import Journal, write_truth
 from gis.align.rough import alignment_error_m
 from gis.geodesy import LocalFrame
 from gis.model import GisModel
@@ -205,7 +205,7 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     model = load_model(files.mesh_ply, sample_spacing_m=cfg.gis.sample_spacing_m)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
-    journal = _open_journal(journal_dir, files.mesh_ply, cfg, scenario.origin)
+    journal = open_journal(journal_dir, files.mesh_ply, cfg, scenario.origin) if journal_dir else None
     f = fly_sim(cfg, _window(scenario, start), n_frames, scenario.camera, scenario.T_body_cam, model, progress=progress,
                 repeatable=repeatable, p_body_gnss_m=scenario.spec.gnss_antenna_m, journal=journal)
     wall = time.perf_counter() - t0
@@ -216,14 +216,6 @@ def bench_scenario(cfg: AppConfig, name: str, n_frames: int = 300, *, seed: int 
     for mode in ("standalone", "dgps"):
         br.gnss_baselines[mode], br.gnss_baselines_h[mode] = gnss_baseline_errors(scenario, mode, t_start, t_start + n_frames / fps)
     return br
-
-
-def _open_journal(folder: Path | None, model_file: Path, cfg: AppConfig, origin: LocalFrame) -> Journal | None:
-    if folder is None:
-        return None
-    write_meta(folder, model_file, cfg.gis.sample_spacing_m, cfg.alignment.model_dump(mode="json"),
-               (origin.lat0_deg, origin.lon0_deg, origin.h0_ellipsoid_m), cfg.gis.footprint_ground_h_msl_m)
-    return Journal(folder)
 
 
 def _close_journal(journal: Journal | None, run: RunLog) -> None:
@@ -249,7 +241,7 @@ def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()
-    journal = _open_journal(journal_dir, ds.gis_files[0], cfg, ds.origin)
+    journal = open_journal(journal_dir, ds.gis_files[0], cfg, ds.origin) if journal_dir else None
     f = fly_sim(cfg, ds.steps(), n, ds.camera, ds.T_body_cam, model, progress=progress, repeatable=repeatable,
                 p_body_gnss_m=ds.p_body_gnss_m, journal=journal)
     wall = time.perf_counter() - t0

@@ -98,7 +98,7 @@ def _restore_georef(cache, site_id: str, localizer) -> int:
 
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
-    from companion.app import build_localizer
+    from companion.app import build_localizer, open_journal
     from gis.cache import GisCache
     from gis.loaders import load_model
     from gis.model import GisFormatError
@@ -125,6 +125,11 @@ def run_service(cfg: AppConfig) -> int:
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
              if cfg.persistence.enabled else None)
     recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id)
+    if recorder is not None and localizer.worker is not None:  # the registrations too, for gis.align.replay
+        try:
+            localizer.worker.journal = open_journal(recorder.out / "registrations", cfg.gis.model.expanduser(), cfg, model.origin)
+        except OSError as e:
+            log_event(log, "recording_unavailable", f"registration journal off for this run: {e}", level=logging.ERROR)
     bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=recorder.on_gnss if recorder else None,
                     on_attitude=recorder.on_attitude if recorder else None,
                     on_mavlink=recorder.on_mavlink if recorder else None).start()

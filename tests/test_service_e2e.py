@@ -457,6 +457,13 @@ def _check_recording(root: Path, feed: "VehicleFeed", loss_at: float, fixes_3d: 
     assert kinds["ATTITUDE"] >= len(ds.attitude), diag
     t_att = [t for t, k in msgs if k == "ATTITUDE"]
     assert abs(t_att[0] - (ds.attitude[0].t_s - feed.epoch_s)) < 0.5 and abs(t_att[-1] - (ds.attitude[-1].t_s - feed.epoch_s)) < 0.5, diag
+    # the registration journal beside it (gis.align.journal), naming the model the service loaded;
+    # this short flight makes no registration (every 200 frames at 2 fps): test_gis_journal replays some
+    from gis.align.journal import read_journal, read_meta
+
+    jmeta = read_meta(out / "registrations")
+    assert Path(jmeta["model_file"]) == Path(yaml.safe_load((out / "site.yaml").read_text())["gis"]["files"][0]), jmeta
+    print(f"registration journal: {len(read_journal(out / 'registrations'))} registrations")
     summary = run_replay(load_config(environ={}), out, root.parent / "replay", repeatable=True)
     assert summary["frames"] == ds.n_frames
     # replayed, the GNSS monitor judges the recorded solutions: lost where the flight lost them
