@@ -110,6 +110,7 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,
                      finetune_min_parallax_deg=cfg.alignment.finetune_min_parallax_deg,
                      finetune_recent_keyframes=cfg.alignment.finetune_recent_keyframes,
+                     denial_sigma_per_m=cfg.alignment.denial_sigma_per_m,
                      initial_alignment=initial_alignment,
                      repeatable_lag_s=REPEATABLE_LAG_S if repeatable else None,
                      bootstrap=BootstrapCollector(T_body_cam=T_body_cam, p_body_gnss_m=np.asarray(p_body_gnss_m, float))

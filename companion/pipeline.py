@@ -45,7 +45,7 @@ from gis.align.georef import GeorefCheck, GeorefCorrection, GeorefEvidence, IcpM
 from gis.align.fine import NADIR_MIN_POINTS, SCALE_MISMATCH_REASON, FineTuner, ScaleCheck
 from gis.align.journal import Journal, RegistrationJob
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, ecef_to_geodetic, geodetic_to_ecef
-from gis.globalizer import Globalizer
+from gis.globalizer import Globalizer, with_horizontal_floor
 from gis.sim3 import Sim3, umeyama
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from mavlink_bridge.monitor import h_acc_of, h_ellipsoid_of
@@ -546,8 +546,10 @@ class Localizer:
                  finetune_every_frames_denied: int = 50,
                  initial_alignment: Alignment | None = None, bootstrap: BootstrapCollector | None = None,
                  min_points_for_finetune: int = 200, finetune_min_parallax_deg: float = 0.0,
-                 finetune_recent_keyframes: int = 0, repeatable_lag_s: float | None = None):
-        """``repeatable_lag_s``: offline, repeatable runs only (``settle``); None live."""
+                 finetune_recent_keyframes: int = 0, repeatable_lag_s: float | None = None,
+                 denial_sigma_per_m: float = 0.0):
+        """``repeatable_lag_s``: offline, repeatable runs only (``settle``); None live.
+        ``denial_sigma_per_m``: alignment.denial_sigma_per_m (``_denial_floor``)."""
         self.slam = slam
         self.globalizer = globalizer
         self.repeatable = repeatable_lag_s is not None
@@ -556,6 +558,9 @@ class Localizer:
         self.min_points = min_points_for_finetune
         self.min_parallax_deg = finetune_min_parallax_deg
         self.recent_keyframes = finetune_recent_keyframes
+        self.denial_sigma_per_m = denial_sigma_per_m
+        self._denied_m: float | None = None  # metres flown since GNSS was last trusted (None: it is)
+        self._denied_cam: tuple[tuple[int, int], np.ndarray] | None = None  # (map key, SLAM camera) of the last frame
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
@@ -851,7 +856,30 @@ class Localizer:
             if alignment is not None:
                 self._check_scale(pose, alignment, item.prior)
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
+        fix = self._denial_floor(item.gnss_trusted, pose, alignment, fix)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
+
+    def _denial_floor(self, gnss_trusted: bool, pose: SlamPose, alignment: Alignment | None,
+                      fix: GlobalFix | None) -> GlobalFix | None:
+        """With ``denial_sigma_per_m`` > 0: while GNSS is not trusted, the fix's horizontal 1-σ is at
+        least that × the distance flown since it was (the tracked camera's SLAM steps in metres at
+        the alignment's scale; a step across a map reset is not counted). Beyond the papers: a
+        registration in a long denial can lock onto a wrong optimum next to a drifted prior and
+        claim ~1 m (docs/BENCHMARKS.md, "Registrations replayed offline"), which no registration
+        gate detected; this bounds the claim by distance, as dead reckoning would."""
+        if self.denial_sigma_per_m <= 0.0:
+            return fix
+        if gnss_trusted:
+            self._denied_m, self._denied_cam = None, None
+            return fix
+        if self._denied_m is None:
+            self._denied_m = 0.0
+        if pose.state.has_pose:
+            key, cam = (pose.map_id, pose.reset_counter), np.asarray(pose.T_slam_cam, float)[:3, 3]
+            if self._denied_cam is not None and self._denied_cam[0] == key and alignment is not None:
+                self._denied_m += alignment.T_ecef_slam.scale * float(np.linalg.norm(cam - self._denied_cam[1]))
+            self._denied_cam = (key, cam)
+        return None if fix is None else with_horizontal_floor(fix, self.denial_sigma_per_m * self._denied_m)
 
     def _learn_baro_offset(self, pair: GnssPair, prior: AttitudePrior | None) -> None:
         """Ellipsoidal height − barometric altitude, averaged over trusted GNSS pairs (exponential,

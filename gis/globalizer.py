@@ -23,6 +23,8 @@ from __future__ import annotations
 import math
 import threading
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -164,3 +166,15 @@ class Globalizer:
         # the drift fraction of the distance moved, and the floor, per end.
         rel = np.hypot(self.slam_drift_fraction * np.linalg.norm(v) * dt, self.sigma_floor_m / 10)
         return v, float(np.sqrt(2) * rel / dt)
+
+
+def with_horizontal_floor(fix: GlobalFix, sigma_h_m: float) -> GlobalFix:
+    """``fix`` with no horizontal direction of its NED covariance below ``sigma_h_m`` (1-σ, metres):
+    eigenvalues of the horizontal block raised to sigma_h_m², directions kept, the vertical and
+    the cross terms with it left alone; h_acc_m follows. The fix itself when it already is."""
+    w, V = np.linalg.eigh(fix.cov_ned_m2[:2, :2])
+    if w[0] >= sigma_h_m ** 2:
+        return fix
+    cov = np.array(fix.cov_ned_m2, float)
+    cov[:2, :2] = (V * np.maximum(w, sigma_h_m ** 2)) @ V.T
+    return replace(fix, cov_ned_m2=cov, h_acc_m=float(np.sqrt(np.linalg.eigvalsh(cov[:2, :2])[-1])))

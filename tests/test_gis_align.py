@@ -826,3 +826,49 @@ def test_registrations_keep_to_the_points_seen_now_on_a_revisit(city):
     assert max(err[t] for t in err if t >= 1.5) < 0.5, err  # adopted at 0.9 s + 0.5 s
     err_all, events_all = _revisited(city, recent_keyframes=0)
     assert min(err_all[t] for t in err_all if t >= 1.5) > 2.0, (err_all, events_all)
+
+
+def test_horizontal_floor_raises_only_the_directions_below_it():
+    from gis.globalizer import with_horizontal_floor
+    from gis.types import GlobalFix
+
+    R = Rotation.from_euler("z", 30, degrees=True).as_matrix()[:2, :2]
+    cov = np.eye(3) * 0.64
+    cov[:2, :2] = R @ np.diag([0.25, 4.0]) @ R.T
+    cov[0, 2] = cov[2, 0] = 0.1
+    fix = GlobalFix(1.0, 1, np.zeros(3), 47.0, 8.0, 500.0, 450.0, cov, 2.0, 0.8, AlignmentSource.FINE)
+    one = with_horizontal_floor(fix, 1.0)
+    np.testing.assert_allclose(np.linalg.eigvalsh(one.cov_ned_m2[:2, :2]), [1.0, 4.0])
+    np.testing.assert_allclose(one.cov_ned_m2[:2, :2] @ (R @ [0, 1]), 4.0 * (R @ [0, 1]))  # the wide direction kept
+    assert one.h_acc_m == pytest.approx(2.0) and one.cov_ned_m2[2, 2] == 0.64 and one.cov_ned_m2[0, 2] == 0.1
+    three = with_horizontal_floor(fix, 3.0)
+    np.testing.assert_allclose(three.cov_ned_m2[:2, :2], 9.0 * np.eye(2), atol=1e-12)
+    assert three.h_acc_m == pytest.approx(3.0)
+    assert with_horizontal_floor(fix, 0.4) is fix
+
+
+def test_in_a_denial_the_fixes_claim_no_better_than_the_distance_flown_allows():
+    """alignment.denial_sigma_per_m: while GNSS is not trusted, every fix's horizontal σ is at least
+    the rate × the metres flown since it was (the camera flies east at 8 m/s); the positions are
+    those the option's absence gives, and trusted GNSS ends the floor."""
+    from companion.pipeline import Localizer, PipelineInput
+    from slam.types import Frame
+
+    a0 = _prior_about(_RevisitSlam.cam_enu(0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), sigma_t_m=0.3, source=AlignmentSource.FINE)
+    trusted = [k < 10 or k >= 40 for k in range(50)]
+    img = np.zeros((48, 64), np.uint8)
+    runs = {}
+    for rate in (0.0, 0.1):
+        slam = _RevisitSlam(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(3))
+        loc = Localizer(slam, None, Globalizer(np.eye(4)), initial_alignment=a0, denial_sigma_per_m=rate)
+        runs[rate] = [loc.process(PipelineInput(Frame(img, k / 10, k), None, trusted[k], None)).fix for k in range(50)]
+        loc.close()
+    for k, (plain, floored) in enumerate(zip(runs[0.0], runs[0.1])):
+        np.testing.assert_array_equal(plain.p_ecef_m, floored.p_ecef_m)
+        flown_m = 8.0 * (k - 10) / 10  # since the first frame without trusted GNSS (k = 10)
+        if trusted[k]:
+            assert floored.h_acc_m == plain.h_acc_m
+        else:
+            assert floored.h_acc_m == pytest.approx(max(plain.h_acc_m, 0.1 * flown_m), rel=1e-6)
+    assert runs[0.1][39].h_acc_m == pytest.approx(0.1 * 8.0 * 2.9, rel=1e-6)
+    assert runs[0.1][39].h_acc_m > 3 * runs[0.0][39].h_acc_m  # the floor, not the Globalizer's σ, decided
