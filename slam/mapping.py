@@ -30,6 +30,12 @@ log = logging.getLogger(__name__)
 
 #: per-keyframe timing histories keep the latest this many entries (about 100 bytes per keyframe)
 STATS_HISTORY = 10_000
+# A bundle adjustment not back from its worker process after this long is abandoned: the worker is
+# restarted and mapping goes on without it. Measured BAs take 0.05-3.3 s on 2 cores (full-loop BA
+# the longest, docs/BENCHMARKS.md); on 2026-12-04 a local BA's job never reached an idle worker
+# under heavy load (3 processes on 2 cores), and with one local BA in flight at a time, mapping
+# then ran without local BA for the rest of the flight (cause in ProcessPoolExecutor not found).
+BA_TIMEOUT_S = 60.0
 NEVER_SEEN_KF_AGE = np.iinfo(np.int32).max  # a map point no held keyframe observes (map_point_arrays)
 
 
@@ -50,6 +56,7 @@ class MappingStats:
     loop_ba_keyframes: deque = field(default_factory=_history)  # keyframes optimised per loop (all windows)
     n_keyframes: int = 0  # keyframes mapped, all of them
     n_loops: int = 0
+    ba_timeouts: int = 0  # BAs abandoned after BA_TIMEOUT_S (their worker restarted)
 
 
 class UpdateQueue:
@@ -334,18 +341,23 @@ class LocalMapper:
         job = self._build_ba(ids[-win:], max_fixed=n_fixed)
         if job is not None:
             self.stats.ba_window.append(win)
-            self._pending_ba = (self._ba.submit(bundle_adjust, job[0]), job, kf)
+            self._pending_ba = (self._ba.submit(bundle_adjust, job[0]), job, kf, time.monotonic())
 
     def _finish_ba(self, wait: bool) -> None:
         """Apply the in-flight local BA once it is done (BA never holds up new keyframes' mapping)."""
         if self._pending_ba is None:
             return
-        fut, job, kf = self._pending_ba
-        if not (wait or fut.done()):
+        fut, job, kf, t_submit = self._pending_ba
+        late = time.monotonic() - t_submit > BA_TIMEOUT_S
+        if not (wait or fut.done() or late):
             return
         try:  # pending until applied and published (wait_idle)
             try:
-                res: BAResult = fut.result()
+                res: BAResult = fut.result(timeout=max(0.0, t_submit + BA_TIMEOUT_S - time.monotonic()))
+            except TimeoutError:
+                self.stats.ba_timeouts += 1
+                self._ba.restart(f"a local BA was not back after {BA_TIMEOUT_S:.0f} s: skipped")
+                return
             except BrokenProcessPool:
                 log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
                 return
@@ -368,7 +380,11 @@ class LocalMapper:
         if job is None:
             return None
         try:
-            res: BAResult = self._ba.submit(bundle_adjust, job[0]).result()
+            res: BAResult = self._ba.submit(bundle_adjust, job[0]).result(timeout=BA_TIMEOUT_S)
+        except TimeoutError:
+            self.stats.ba_timeouts += 1
+            self._ba.restart(f"a loop-closing BA was not back after {BA_TIMEOUT_S:.0f} s: skipped")
+            return None
         except BrokenProcessPool:
             log.error("bundle-adjustment worker died during a loop-closing BA: that BA is skipped")
             return None

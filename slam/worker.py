@@ -53,6 +53,19 @@ class ForkedWorker:
                 self._pool = self._start()
                 return self._pool.submit(fn, *args)
 
+    def restart(self, why: str) -> None:
+        """Abandon the current process (killed, its queued jobs cancelled) and fork a new one: for a
+        job that will not come back (see slam.mapping.BA_TIMEOUT_S)."""
+        with self._lock:
+            if self._pool is None:
+                return
+            log.error("%s worker restarted: %s", self.name, why)
+            old, self._pool = self._pool, self._start()
+        # ProcessPoolExecutor has no public way to end a busy worker (terminate_workers is 3.14+)
+        for proc in list((getattr(old, "_processes", None) or {}).values()):
+            proc.kill()
+        old.shutdown(wait=False, cancel_futures=True)
+
     def close(self) -> None:
         with self._lock:
             pool, self._pool = self._pool, None
