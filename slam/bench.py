@@ -666,7 +666,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--render-only", action="store_true", help="--memory: render the lap into --cache-dir and stop")
     ap.add_argument("--lockstep", action="store_true", help="wait for local mapping after each frame (--memory: each keyframe)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="--memory: SlamConfig override, e.g. --set max_keyframes=200 (repeatable)")
+                    help="SlamConfig override, e.g. --set max_keyframes=200 (repeatable)")
     ap.add_argument("--camera-fps", type=float, default=None, help="render the scenario at this frame rate instead of its own")
     ap.add_argument("--start-s", default="0",
                     help="flight time of the first frame (s), or 'turn': 10 s before the first turn, as terraslam bench's window")
@@ -694,7 +694,8 @@ def main(argv: list[str] | None = None) -> None:
         save_sequence(seq, a.export, a.jpeg_quality)
         print(f"wrote {a.export} ({os.path.getsize(a.export) / 1e6:.1f} MB)")
         return
-    base = SlamConfig(feature_backend=a.backend, torch_device=a.device)
+    overrides = dict(kv.split("=", 1) for kv in a.set)
+    base = SlamConfig(**{**SlamConfig().model_dump(), "feature_backend": a.backend, "torch_device": a.device, **overrides})
     if a.features:
         cpu = base.model_copy(update=dict(feature_backend="cpu"))
         configs = [("OpenCV ORB (cpu)", cpu)] + [(f"torch patch-parallel ({d})", cpu.model_copy(

@@ -119,5 +119,6 @@ def make_extractor(camera: CameraModel, config: SlamConfig) -> Callable[[np.ndar
     if config.feature_backend == "torch":
         from slam.torch_orb import make_orb_torch  # torch is imported only when selected
 
-        return make_orb_torch(camera, config.n_features, config.n_patches, config.torch_device)
+        return make_orb_torch(camera, config.n_features, config.n_patches, config.torch_device,
+                              config.torch_low_contrast_std_dn)
     return make_orb_cpu(camera, config.n_features)

@@ -15,11 +15,12 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from slam.features import Features, to_gray, undistort_px
+from slam.features import Features, normalise_contrast, to_gray, undistort_px
 from slam.types import CameraModel
 
 HALF_PATCH = 15  # 31x31 orientation/descriptor window, like ORB
@@ -40,8 +41,14 @@ def _grid(n_patches: int, h: int, w: int) -> tuple[int, int]:
 
 
 class TorchOrb:
-    def __init__(self, camera: CameraModel, n_features: int, n_patches: int, device: str) -> None:
+    def __init__(self, camera: CameraModel, n_features: int, n_patches: int, device: str,
+                 low_contrast_std_dn: float = 0.0) -> None:
+        """low_contrast_std_dn: frames with a lower intensity std are denoised and stretched first
+        (normalise_contrast): on a dark frame (gain 0.15-0.3, sensor noise) the Harris response
+        otherwise picks noise, and fewer of the corners match (measured on a warped test image:
+        0.87-0.88 of the matches correct, 0.92-0.95 normalised; tests/test_slam_logic.py)."""
         self.camera = camera
+        self.low_contrast_std_dn = low_contrast_std_dn
         self.device = torch.device(device)
         self.n_features = n_features
         h, w = camera.height_px, camera.width_px
@@ -67,6 +74,8 @@ class TorchOrb:
     @torch.no_grad()
     def __call__(self, image: np.ndarray) -> Features:
         gray = np.ascontiguousarray(to_gray(image))
+        if self.low_contrast_std_dn > 0 and float(cv2.meanStdDev(gray)[1][0, 0]) < self.low_contrast_std_dn:
+            gray = normalise_contrast(gray)
         img = torch.from_numpy(gray).to(self.device, torch.float32).view(1, 1, *gray.shape)
         h, w = gray.shape
         # Harris response for every pixel (3x3 Sobel, 5-tap binomial window), k = 0.04
@@ -115,5 +124,6 @@ class TorchOrb:
         return Features(undistort_px(self.camera, uv), desc.cpu().numpy(), np.zeros(len(uv), int))
 
 
-def make_orb_torch(camera: CameraModel, n_features: int, n_patches: int, device: str) -> Callable[[np.ndarray], Features]:
-    return TorchOrb(camera, n_features, n_patches, device)
+def make_orb_torch(camera: CameraModel, n_features: int, n_patches: int, device: str,
+                   low_contrast_std_dn: float = 0.0) -> Callable[[np.ndarray], Features]:
+    return TorchOrb(camera, n_features, n_patches, device, low_contrast_std_dn)

@@ -226,6 +226,33 @@ def test_torch_and_cpu_features_both_match_a_warped_image(device):
         assert ok.sum() > 100 and ok.mean() > 0.8
 
 
+def test_torch_features_on_a_dark_image_are_taken_from_its_normalised_contrast():
+    """The torch (GA) path on a dark, noisy frame pair (gain 0.15, read noise 2 DN): normalised
+    first (std below torch_low_contrast_std_dn), more of its corners match correctly than when
+    the Harris response sees the raw noise; a well-lit frame is left as it is."""
+    pytest.importorskip("torch")
+    from slam.torch_orb import make_orb_torch
+
+    cam = CameraModel(512, 512, K)
+    rng = np.random.default_rng(0)
+    img = cv2.resize(data.camera(), (512, 512)).astype(float)
+    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
+    dark = [np.clip(0.15 * im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8)
+            for im in (img, cv2.warpAffine(img, M, (512, 512)))]
+
+    def correct(ex) -> tuple[int, float]:
+        a, b = (ex(im) for im in dark)
+        pairs = match_bf(a.desc, b.desc, ratio=0.8)
+        ok = np.linalg.norm(a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2] - b.uv_px[pairs[:, 1]], axis=1) < 3
+        return int(ok.sum()), float(ok.mean())
+
+    raw, normalised = correct(make_orb_torch(cam, 800, 256, "cpu", 0.0)), correct(make_orb_torch(cam, 800, 256, "cpu", 20.0))
+    assert normalised[0] > raw[0] and normalised[1] > raw[1] and normalised[1] >= 0.9, (raw, normalised)
+    lit = img.astype(np.uint8)
+    a, b = make_orb_torch(cam, 800, 256, "cpu", 0.0)(lit), make_orb_torch(cam, 800, 256, "cpu", 20.0)(lit)
+    np.testing.assert_array_equal(a.uv_px, b.uv_px)
+
+
 @pytest.mark.gpu
 def test_torch_features_on_cuda_are_those_on_the_cpu():
     """The GA path on a GPU computes what it computes on a CPU: the same corners (float rounding
