@@ -573,6 +573,12 @@ def memory_summary(samples: list[MemorySample]) -> dict:
             "ratio_end_to_2min": float(rss[-1] / rss[at2]), "flight_min": float(t_min[-1])}
 
 
+def cli_config(a: argparse.Namespace) -> SlamConfig:
+    """The SlamConfig of the command line: --backend, --device, then every --set KEY=VALUE."""
+    overrides = dict(kv.split("=", 1) for kv in a.set)
+    return SlamConfig(**{**SlamConfig().model_dump(), "feature_backend": a.backend, "torch_device": a.device, **overrides})
+
+
 def memory_main(a: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     lap = render_lap(a.scenario, a.seed, a.fps, a.cache_dir)
@@ -580,8 +586,7 @@ def memory_main(a: argparse.Namespace) -> None:
           f"(cache {lap.root})", flush=True)
     if a.render_only:
         return
-    overrides = dict(kv.split("=", 1) for kv in a.set)
-    cfg = SlamConfig(**{**SlamConfig().model_dump(), "feature_backend": a.backend, "torch_device": a.device, **overrides})
+    cfg = cli_config(a)
     samples, run = run_memory(lap, cfg, a.minutes, a.sample_every, realtime=not a.no_realtime, lockstep=a.lockstep)
     f = memory_summary(samples)
     rmse, length, pct = run.ate()
@@ -593,7 +598,7 @@ def memory_main(a: argparse.Namespace) -> None:
           f"config max_keyframes {cfg.max_keyframes}, loop_anchor_every {cfg.loop_anchor_every}, "
           f"max_loop_anchors {cfg.max_loop_anchors}, max_trajectory_keyframes {cfg.max_trajectory_keyframes}")
     print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; {'real-time' if not a.no_realtime else 'as fast as possible'}"
-          f"{', lockstep with local mapping' if a.lockstep else ''}; overrides {overrides or 'none'}")
+          f"{', lockstep with local mapping' if a.lockstep else ''}; overrides {', '.join(a.set) or 'none'}")
 
 
 def prior_row(r: RunResult) -> dict[str, float]:
@@ -694,8 +699,7 @@ def main(argv: list[str] | None = None) -> None:
         save_sequence(seq, a.export, a.jpeg_quality)
         print(f"wrote {a.export} ({os.path.getsize(a.export) / 1e6:.1f} MB)")
         return
-    overrides = dict(kv.split("=", 1) for kv in a.set)
-    base = SlamConfig(**{**SlamConfig().model_dump(), "feature_backend": a.backend, "torch_device": a.device, **overrides})
+    base = cli_config(a)
     if a.features:
         cpu = base.model_copy(update=dict(feature_backend="cpu"))
         configs = [("OpenCV ORB (cpu)", cpu)] + [(f"torch patch-parallel ({d})", cpu.model_copy(

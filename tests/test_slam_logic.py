@@ -200,6 +200,27 @@ def test_place_index_finds_the_revisited_place():
     assert all(c.kf_id != 0 for c in idx.query(query, exclude_after_kf_id=-1))
 
 
+def _warped_pair(gain: float = 1.0, noise_dn: float = 0.0) -> tuple[list[np.ndarray], np.ndarray]:
+    """The camera test image (512x512) and its copy rotated 10° about the centre, as is or darkened
+    to ``gain`` with Gaussian read noise (warped in float, then truncated); returns the pair
+    (uint8) and the 2x3 warp."""
+    img = cv2.resize(data.camera(), (512, 512))
+    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
+    if gain == 1.0 and noise_dn == 0.0:
+        return [img, cv2.warpAffine(img, M, (512, 512))], M
+    rng = np.random.default_rng(0)
+    lit = img.astype(float)
+    return [np.clip(gain * im + rng.normal(0, noise_dn, im.shape), 0, 255).astype(np.uint8)
+            for im in (lit, cv2.warpAffine(lit, M, (512, 512)))], M
+
+
+def _correct_matches(a, b, M: np.ndarray) -> np.ndarray:
+    """Per ratio-test match of a's features to b's: whether it lands within 3 px of where the warp M
+    puts it."""
+    pairs = match_bf(a.desc, b.desc, ratio=0.8)
+    return np.linalg.norm(a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2] - b.uv_px[pairs[:, 1]], axis=1) < 3
+
+
 def _needs_cuda():
     torch = pytest.importorskip("torch")
     if not torch.cuda.is_available():
@@ -214,15 +235,11 @@ def test_torch_and_cpu_features_both_match_a_warped_image(device):
     from slam.torch_orb import make_orb_torch
 
     cam = CameraModel(512, 512, K)
-    img = cv2.resize(data.camera(), (512, 512))
-    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
-    warped = cv2.warpAffine(img, M, (512, 512))
+    (img, warped), M = _warped_pair()
     for ex in (make_orb_cpu(cam, 800), make_orb_torch(cam, 800, 256, device)):
         a, b = ex(img), ex(warped)
         assert len(a) > 400
-        pairs = match_bf(a.desc, b.desc, ratio=0.8)
-        pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
-        ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
+        ok = _correct_matches(a, b, M)
         assert ok.sum() > 100 and ok.mean() > 0.8
 
 
@@ -234,21 +251,15 @@ def test_torch_features_on_a_dark_image_are_taken_from_its_normalised_contrast()
     from slam.torch_orb import make_orb_torch
 
     cam = CameraModel(512, 512, K)
-    rng = np.random.default_rng(0)
-    img = cv2.resize(data.camera(), (512, 512)).astype(float)
-    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
-    dark = [np.clip(0.15 * im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8)
-            for im in (img, cv2.warpAffine(img, M, (512, 512)))]
+    dark, M = _warped_pair(gain=0.15, noise_dn=2.0)
 
     def correct(ex) -> tuple[int, float]:
-        a, b = (ex(im) for im in dark)
-        pairs = match_bf(a.desc, b.desc, ratio=0.8)
-        ok = np.linalg.norm(a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2] - b.uv_px[pairs[:, 1]], axis=1) < 3
+        ok = _correct_matches(ex(dark[0]), ex(dark[1]), M)
         return int(ok.sum()), float(ok.mean())
 
     raw, normalised = correct(make_orb_torch(cam, 800, 256, "cpu", 0.0)), correct(make_orb_torch(cam, 800, 256, "cpu", 20.0))
     assert normalised[0] > raw[0] and normalised[1] > raw[1] and normalised[1] >= 0.9, (raw, normalised)
-    lit = img.astype(np.uint8)
+    lit = _warped_pair()[0][0]
     a, b = make_orb_torch(cam, 800, 256, "cpu", 0.0)(lit), make_orb_torch(cam, 800, 256, "cpu", 20.0)(lit)
     np.testing.assert_array_equal(a.uv_px, b.uv_px)
 
@@ -280,17 +291,11 @@ def test_cpu_features_on_a_dark_image_come_from_its_normalised_contrast_and_stil
     from slam.features import FAST_THRESHOLD
 
     cam = CameraModel(512, 512, K)
-    rng = np.random.default_rng(0)
-    img = cv2.resize(data.camera(), (512, 512)).astype(float)
-    M = cv2.getRotationMatrix2D((256, 256), 10, 1.0)
-    dark = [np.clip(0.15 * im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8)
-            for im in (img, cv2.warpAffine(img, M, (512, 512)))]
+    dark, M = _warped_pair(gain=0.15, noise_dn=2.0)
     assert len(cv2.ORB_create(nfeatures=1200, fastThreshold=FAST_THRESHOLD).detect(dark[0])) < 100
     a, b = (make_orb_cpu(cam, 800)(im) for im in dark)
     assert len(a) > 300 and len(b) > 300
-    pairs = match_bf(a.desc, b.desc, ratio=0.8)
-    pred = a.uv_px[pairs[:, 0]] @ M[:, :2].T + M[:, 2]
-    ok = np.linalg.norm(pred - b.uv_px[pairs[:, 1]], axis=1) < 3
+    ok = _correct_matches(a, b, M)
     assert ok.sum() > 150 and ok.mean() > 0.85
 
 
