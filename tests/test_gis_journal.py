@@ -105,6 +105,10 @@ def test_the_worker_journals_its_registrations_and_a_replay_decides_as_the_fligh
     assert rows[0].prior_err_h_m == pytest.approx(np.hypot(2.0, -1.0), abs=0.05)
     assert all(r.fused_err_h_m < 0.6 * r.prior_err_h_m and r.fused_err_h_m <= 3 * r.sigma_m for r in rows)
     assert all(r.scan.n_starts == 25 and 1 <= r.scan.n_optima <= 25 and np.isfinite(r.scan.best_err_h_m) for r in rows)
+    # started at the truth, the ICP leaves it for where the cloud fits: these clouds are tilted 1°
+    # about their centroid relative to the camera 80 m above (_distorted_cloud), 1.4 m at the camera
+    assert all(0.7 < r.scan.from_truth_err_h_m < 1.8 for r in rows)
+    assert "started at the truth it settles" in format_rows(rows)
     assert "2 of 2 accepted" in format_rows(rows)
 
     # as a chain, the second registration starts from the first one's replayed result, not its recorded prior
@@ -127,3 +131,24 @@ def test_replay_command_needs_the_model_file_and_valid_settings(tmp_path, capsys
         main([str(tmp_path), "--set", "no_such_setting=1"])
     with pytest.raises(SystemExit, match="names no GIS model file"):
         main([str(tmp_path)])
+
+
+def test_the_scan_finds_the_clouds_own_floor_from_the_truth(city):
+    """``--scan``'s start at the truth: an undistorted cloud stays there (a few decimetres), the
+    same cloud tilted 1° about its centroid leaves it by about the tilt × the camera's 80 m height,
+    wherever the prior (3 m off here) started the ICP."""
+    from gis.align.replay import _scan
+    from gis.synthetic import slam_like_cloud
+
+    c_ground = np.array([20.0, -10, 0])
+    cam = c_ground + np.array([0.0, 0.0, 80.0])
+    truth = T_ECEF_SLAM.apply(_slam(cam)[None])[0]
+    tuner = FineTuner(city, AlignmentConfig())
+    prior = _prior_about(cam, (3.0, 0.0, 0.0))
+    clean = slam_like_cloud(city, c_ground, 70, 3000, noise_m=0.3, seed=5)
+    tilted, _ = _distorted_cloud(city, c_ground, seed=5)
+    floor_clean = _scan(tuner, _slam(clean), prior, _slam(cam), truth).from_truth_err_h_m
+    floor_tilted = _scan(tuner, _slam(tilted), prior, _slam(cam), truth).from_truth_err_h_m
+    assert floor_clean < 0.4
+    assert 0.7 < floor_tilted < 1.8
+    assert np.isnan(_scan(tuner, _slam(clean), prior, _slam(cam), None).from_truth_err_h_m)

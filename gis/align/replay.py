@@ -11,13 +11,15 @@ prior, the ICP alone and the fused result were, against what they claimed. ``--c
 registration from the one the replay accepted before it, as in a GNSS denial, so a changed setting
 carries through (``--after`` the loss's time, to begin at the denial). ``--scan`` also starts
 the ICP from 24 points 3/6/9 m about the prior (``FineTuner.optima``) and says how many distinct
-optima those starts reach, how far apart, and how far the best-fitting one is from the truth.
+optima those starts reach, how far apart, and how far the best-fitting one is from the truth;
+with the truth, also where the ICP settles when started *at* the true camera position (the prior
+moved there): the registration's own accuracy floor on that flight's SLAM points, whatever the prior.
 """
 from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,7 @@ from gis.align.journal import JournalRecord, read_journal, read_meta, read_truth
 from gis.config import AlignmentConfig
 from gis.geodesy import R_ecef_enu, ecef_to_geodetic
 from gis.model import GisModel
+from gis.sim3 import Sim3, compose
 from gis.types import Alignment
 
 CLUSTER_M = 1.0  # optima closer than this are one
@@ -38,6 +41,7 @@ class Scan:
     n_optima: int          # distinct optima (CLUSTER_M apart)
     rms_m: float           # horizontal RMS of the converged camera positions about their mean
     best_err_h_m: float    # the best-fitting optimum's horizontal distance from the truth (nan without truth)
+    from_truth_err_h_m: float = math.nan  # the ICP started at the true camera: where it settles, from the truth
 
 
 @dataclass(frozen=True)
@@ -83,8 +87,13 @@ def _scan(tuner: FineTuner, points_slam: np.ndarray, prior: Alignment, center_sl
         if not any(np.linalg.norm(q - r) < CLUSTER_M for r in reps):
             reps.append(q)
     best = int(np.argmax([x[1] for x in found]))
+    floor = math.nan
+    if truth is not None:  # the prior moved (translation only) so that it puts the camera at the truth
+        camera = prior.T_ecef_slam.apply(np.asarray(center_slam, float)[None])[0]
+        at_truth = replace(prior, T_ecef_slam=compose(Sim3(1.0, np.eye(3), np.asarray(truth) - camera), prior.T_ecef_slam))
+        floor = _h_err(tuner.optima(points_slam, at_truth, center_slam, radii_m=())[0][0], truth)
     return Scan(len(found), len(reps), float(np.sqrt(((en - en.mean(axis=0)) ** 2).sum(axis=1).mean())),
-                _h_err(p[best], truth))
+                _h_err(p[best], truth), floor)
 
 
 def replay(records: list[JournalRecord], model: GisModel, config: AlignmentConfig,
@@ -123,7 +132,8 @@ def format_rows(rows: list[Replayed]) -> str:
         if r.scan is not None:
             s = r.scan
             line += (f"\n        scan: {s.n_starts} starts reach {s.n_optima} optima, RMS {s.rms_m:.2f} m about their mean; "
-                     f"best-fitting one {s.best_err_h_m:.2f} m from the truth")
+                     f"best-fitting one {s.best_err_h_m:.2f} m from the truth; "
+                     f"started at the truth it settles {s.from_truth_err_h_m:.2f} m from it")
         lines.append(line)
     ok = [r for r in rows if math.isfinite(r.fused_err_h_m)]
     if ok and all(math.isfinite(r.sigma_m) for r in ok):
