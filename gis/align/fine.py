@@ -436,8 +436,7 @@ class FineTuner:
             if sig_prior > MAX_PRIOR_SIGMA_M:
                 return Registration(None, f"prior too vague: horizontal 1-σ {sig_prior:.1f} m at the crop centre > "
                                           f"{MAX_PRIOR_SIGMA_M} m (ICP's convergence basin)", n_source=len(src))
-        # The model within max_correspondence_m beyond the source's square, so border points find their matches.
-        crop = self._crops.get(c, half + cfg.max_correspondence_m)
+        crop, min_corr = self._target(c)
         n_tgt = int(np.sum(np.all(np.abs(crop.points[:, :2] - c[:2]) <= half, axis=1)))
         if n_tgt < cfg.min_points:
             return Registration(None, f"GIS crop holds only {n_tgt} points (outside the model?)", n_target=n_tgt)
@@ -448,10 +447,6 @@ class FineTuner:
             if chk.mismatch:
                 return Registration(None, f"{SCALE_MISMATCH_REASON}: {chk.describe()}",
                                     n_source=len(src), scale_ratio=k, wall_ms=1e3 * (time.perf_counter() - t0))
-        # Correspondence distances never drop below the model's own point spacing (a sparse
-        # model would otherwise lose true correspondences and report a low fitness).
-        min_corr = 1.5 * crop.spacing_m(c, half)
-
         icp = _evaluate(src, crop, c, _icp(src, crop, c, Sim3.identity(), cfg, min_corr), cfg, min_corr)
         reason = self._gate(icp, cfg)
         used_fpfh = False
@@ -547,9 +542,7 @@ class FineTuner:
         cfg = self.config
         pts = np.asarray(points_slam, float).reshape(-1, 3)
         _, c, src = self._source(pts[np.all(np.isfinite(pts), axis=1)], initial, center_slam)
-        half = cfg.crop_size_m / 2
-        crop = self._crops.get(c, half + cfg.max_correspondence_m)
-        min_corr = 1.5 * crop.spacing_m(c, half)
+        crop, min_corr = self._target(c)
         out = []
         starts = [np.zeros(3)] + [r * np.array([math.cos(a), math.sin(a), 0.0]) for r in radii_m
                                   for a in np.linspace(0, 2 * math.pi, directions, endpoint=False)]
@@ -558,6 +551,15 @@ class FineTuner:
             ev = _evaluate(src, crop, c, T, cfg, min_corr)
             out.append((self._T_ecef_enu.apply((c + T.t)[None])[0], ev.fitness, ev.rmse_m))
         return out
+
+    def _target(self, c: np.ndarray) -> tuple[_Crop, float]:
+        """The model about crop centre c (model ENU): its crop_size_m square and max_correspondence_m
+        beyond, so border points find their matches; and the least correspondence distance, never
+        below the model's own point spacing there (a sparse model would otherwise lose true
+        correspondences and report a low fitness)."""
+        half = self.config.crop_size_m / 2
+        crop = self._crops.get(c, half + self.config.max_correspondence_m)
+        return crop, 1.5 * crop.spacing_m(c, half)
 
     def in_crop(self, points_slam: np.ndarray, T_ecef_slam: Sim3, center_slam: np.ndarray) -> np.ndarray:
         """(N,) bool: the SLAM points a registration about ``center_slam`` under ``T_ecef_slam``
