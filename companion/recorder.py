@@ -190,8 +190,12 @@ class FlightRecorder:
         """The wire bytes of a MAVLink message received or sent (Link's tap: the receive thread,
         or whichever thread sent it)."""
         if self.stats.stopped is None:
+            # UNIX time as the recording began plus the monotonic clock since, not time.time(): a
+            # board without a real-time clock (Raspberry Pi class) steps its wall clock when NTP or
+            # GPS time arrives, which would tear the log's times away from the frames' (and send
+            # them backwards); this way they stay on the frames' clock, offset as dataset.yaml says.
             with self._lock:  # stamped under the lock: the log's times never go back between threads
-                self._mavlink.append((time.time(), bytes(buf)))
+                self._mavlink.append((self._unix_minus_clock_s + time.monotonic(), bytes(buf)))
 
     # ---- lifecycle -----------------------------------------------------------------------
     def start(self) -> "FlightRecorder":

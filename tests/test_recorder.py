@@ -150,3 +150,31 @@ def test_mavlink_traffic_is_kept_as_a_tlog_that_pymavlink_reads(tmp_path: Path) 
     assert all(t0 - 1e-3 <= m._timestamp <= t1 + 1e-3 for m in got)
     meta = yaml.safe_load((rec.out / "dataset.yaml").read_text())["recording"]
     assert meta["mavlink_messages"] == 3 and abs(meta["unix_time_minus_clock_s"] - (time.time() - time.monotonic())) < 0.5
+
+
+def test_the_tlog_keeps_the_frames_clock_when_the_wall_clock_steps(tmp_path: Path, monkeypatch) -> None:
+    """A companion board without a real-time clock steps its wall clock mid-flight (NTP or GPS
+    time arriving): the tlog's times stay on the recording's clock (dataset.yaml's UNIX offset plus
+    time.monotonic()), in order, not an hour back with the wall clock."""
+    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
+    from pymavlink import mavutil
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    autopilot = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    cam = make_scenario("nominal", n_frames=1)
+    rec = open_recording(tmp_path / "rec", RecordingConfig(), cam.camera, cam.T_body_cam, 10.0, cam.origin, [])
+    offset = yaml.safe_load((rec.out / "dataset.yaml").read_text())["recording"]["unix_time_minus_clock_s"]
+    m0 = time.monotonic()
+    rec.on_mavlink(autopilot.heartbeat_encode(2, 3, 0, 0, 4).pack(autopilot))
+    real_time = time.time
+    monkeypatch.setattr(time, "time", lambda: real_time() - 3600.0)  # the wall clock steps back an hour
+    rec.on_mavlink(autopilot.heartbeat_encode(2, 3, 0, 0, 5).pack(autopilot))
+    m1 = time.monotonic()
+    monkeypatch.undo()
+    rec.close()
+    log = mavutil.mavlink_connection(str(rec.out / "mavlink.tlog"), dialect=DIALECT)
+    stamps = []
+    while (m := log.recv_match()) is not None:
+        stamps.append(m._timestamp)
+    assert len(stamps) == 2 and stamps[0] <= stamps[1]
+    assert all(offset + m0 - 1e-3 <= t <= offset + m1 + 1e-3 for t in stamps)
