@@ -4,6 +4,7 @@ PNG/JPEG files, the real dataset reader and the real replay pipeline. The servic
 real MAVLink is in test_service_e2e.py."""
 from __future__ import annotations
 
+import importlib
 import shutil
 import time
 from dataclasses import replace
@@ -121,14 +122,31 @@ def test_no_recording_is_started_on_a_disk_under_min_free(tmp_path: Path) -> Non
     assert not any((tmp_path / "rec").glob("flight-*"))
 
 
-def test_mavlink_traffic_is_kept_as_a_tlog_that_pymavlink_reads(tmp_path: Path) -> None:
-    """Every message the bridge's link taps (received and sent) lands in mavlink.tlog, the ground
-    stations' format: pymavlink's log reader gives them back with their wall-clock times. The
-    service's own tlog, over real UDP, is checked in test_service_e2e.py."""
+def _dialect():
+    """pymavlink's MAVLink 2 module of the bridge's dialect (mavlink_bridge.link sets MAVLINK20
+    before pymavlink is imported)."""
+    from mavlink_bridge.link import DIALECT
+
+    return importlib.import_module(f"pymavlink.dialects.v20.{DIALECT}")
+
+
+def _tlog_messages(path: Path) -> list:
+    """Every message of a tlog as pymavlink's log reader gives it back (with its ``_timestamp``)."""
     from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
     from pymavlink import mavutil
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+    log = mavutil.mavlink_connection(str(path), dialect=DIALECT)
+    out = []
+    while (m := log.recv_match()) is not None:
+        out.append(m)
+    return out
+
+
+def test_mavlink_traffic_is_kept_as_a_tlog_that_pymavlink_reads(tmp_path: Path) -> None:
+    """Every message the bridge's link taps (received and sent) lands in mavlink.tlog, the ground
+    stations' format: pymavlink's log reader gives them back with their UNIX times. The
+    service's own tlog, over real UDP, is checked in test_service_e2e.py."""
+    mavlink2 = _dialect()
     autopilot, us = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
     sent = [autopilot.heartbeat_encode(2, 3, 0, 0, 4).pack(autopilot),
             us.gps_input_encode(123456, 0, 0, 0, 0, 3, 473_769_000, 85_417_000, 541.0, 0.8, 1.1, 0, 0, 0, 0.3, 0.6, 0.8, 12).pack(us),
@@ -141,10 +159,7 @@ def test_mavlink_traffic_is_kept_as_a_tlog_that_pymavlink_reads(tmp_path: Path) 
     t1 = time.time()
     stats = rec.close()
     assert stats.mavlink_messages == 3
-    log = mavutil.mavlink_connection(str(rec.out / "mavlink.tlog"), dialect=DIALECT)
-    got = []
-    while (m := log.recv_match()) is not None:
-        got.append(m)
+    got = _tlog_messages(rec.out / "mavlink.tlog")
     assert [m.get_type() for m in got] == ["HEARTBEAT", "GPS_INPUT", "EKF_STATUS_REPORT"]
     assert got[1].lat == 473_769_000 and got[1].get_srcComponent() == 197 and got[2].flags == 0x1FF
     assert all(t0 - 1e-3 <= m._timestamp <= t1 + 1e-3 for m in got)
@@ -156,10 +171,7 @@ def test_the_tlog_keeps_the_frames_clock_when_the_wall_clock_steps(tmp_path: Pat
     """A companion board without a real-time clock steps its wall clock mid-flight (NTP or GPS
     time arriving): the tlog's times stay on the recording's clock (dataset.yaml's UNIX offset plus
     time.monotonic()), in order, not an hour back with the wall clock."""
-    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
-    from pymavlink import mavutil
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-
+    mavlink2 = _dialect()
     autopilot = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     cam = make_scenario("nominal", n_frames=1)
     rec = open_recording(tmp_path / "rec", RecordingConfig(), cam.camera, cam.T_body_cam, 10.0, cam.origin, [])
@@ -172,9 +184,6 @@ def test_the_tlog_keeps_the_frames_clock_when_the_wall_clock_steps(tmp_path: Pat
     m1 = time.monotonic()
     monkeypatch.undo()
     rec.close()
-    log = mavutil.mavlink_connection(str(rec.out / "mavlink.tlog"), dialect=DIALECT)
-    stamps = []
-    while (m := log.recv_match()) is not None:
-        stamps.append(m._timestamp)
+    stamps = [m._timestamp for m in _tlog_messages(rec.out / "mavlink.tlog")]
     assert len(stamps) == 2 and stamps[0] <= stamps[1]
     assert all(offset + m0 - 1e-3 <= t <= offset + m1 + 1e-3 for t in stamps)
