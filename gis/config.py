@@ -13,7 +13,7 @@ class GisConfig(BaseModel):
     model: Path | None = Field(None, description="GIS model file to use directly (any supported format)")
     fetch_radius_m: float = Field(10_000.0, gt=0, le=100_000, description="fetch models within this radius of the rough position (TerraSLAM §6)")
     fetch_timeout_s: float = Field(30.0, gt=0, le=600)
-    sample_spacing_m: float = Field(1.0, gt=0.05, le=20, description="surface sampling of meshes/polygons when loading a model (one point per spacing²)")
+    sample_spacing_m: float = Field(1.0, gt=0.05, le=20, description="surface sampling of meshes/polygons when loading a model (one point per spacing²); 3D Tiles are loaded at the coarsest level whose geometric error is at most this")
     footprint_ground_h_msl_m: float | None = Field(None, ge=-500, le=9000, description="the site's ground height above MSL for building footprints that carry no heights (OSM, GeoJSON without z); such files are refused without it")
 
 

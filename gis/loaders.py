@@ -18,8 +18,14 @@ Formats (dispatched on content, then extension):
   ``building`` or ``building:part`` (closed ways and multipolygon relations, holes kept), extruded
   with the same height rules as GeoJSON (OSM carries no ground heights: ``ground_h_msl_m`` is needed).
 - 3D Tiles 1.0/1.1 (``tileset.json`` with b3dm or glb content, as Cesium and Google Photorealistic
-  3D Tiles serve them): leaf tiles, with tile transforms, RTC_CENTER / CESIUM_RTC and the glTF
-  Y-up → Z-up rotation of the 3D Tiles spec. Local files only here; see gis.providers for HTTP.
+  3D Tiles serve them): the tiles of the coarsest level whose geometric error is at most the
+  sampling spacing (finer detail would only be sampled away; ``refine`` REPLACE / ADD as the spec
+  says), with tile transforms, RTC_CENTER / CESIUM_RTC, the glTF Y-up → Z-up rotation of the spec,
+  and Draco-compressed meshes (KHR_draco_mesh_compression, decoded by trimesh with DracoPy).
+  Content URIs may carry a query (``?session=…``); see gis.providers for HTTP.
+- glTF files that require an extension changing geometry that we do not decode
+  (EXT_meshopt_compression, KHR_mesh_quantization, …) are refused by name: trimesh would load
+  placeholder zeros for them.
 """
 from __future__ import annotations
 
@@ -29,6 +35,8 @@ import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterator
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 import open3d as o3d
@@ -176,6 +184,9 @@ def load_ply(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
 def load_mesh(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     """PLY/OBJ/GLB/glTF mesh or PLY point cloud + georef sidecar."""
     crs, offset, vertical = read_georef(path)
+    if path.suffix.lower() in (".glb", ".gltf"):
+        data = path.read_bytes()
+        check_gltf_extensions(path, _glb_json(path, data) if data[:4] == b"glTF" else _read_json(path))
     try:
         geom = trimesh.load(path, process=False)
     except Exception as e:  # trimesh raises many types on corrupt input
@@ -504,45 +515,84 @@ def extrude_footprint(rings_enu: list[np.ndarray], height_m: float, spacing_m: f
 
 # --- 3D Tiles --------------------------------------------------------------------------------
 
-def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0, skip_missing: bool = False) -> GisModel:
-    """Leaf tiles of a 3D Tiles tileset (b3dm or glb content) → one model.
+def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0,
+                 resolve: Callable[[Path, str], Path | None] | None = None) -> GisModel:
+    """The tiles of a 3D Tiles tileset (b3dm or glb content) that ``tileset_contents`` selects for
+    this sampling spacing → one model.
 
-    skip_missing: leave out tiles whose content file is absent (a partial download mirror, see
-    gis.providers) instead of failing."""
+    resolve(tileset file, content URI) → its local file, or None to leave it out: by default
+    relative to the tileset file, query and fragment dropped; a download mirror (gis.providers)
+    passes its own (absolute-path URIs, only what this fetch downloaded)."""
     models: list[GisModel] = []
-    _walk_tileset(tileset_path, np.eye(4), sample_spacing_m, models, 0, skip_missing)
+    _walk_tileset(tileset_path, np.eye(4), "REPLACE", sample_spacing_m, models, 0, resolve or _relative_uri)
     if not models:
-        raise GisFormatError(tileset_path, "tileset has no b3dm/glb content in its leaf tiles")
+        raise GisFormatError(tileset_path, "tileset has no b3dm/glb content in the tiles selected")
     return merge_models(models, tileset_path)
 
 
-def _walk_tileset(path: Path, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int, skip: bool) -> None:
+@dataclass(frozen=True)
+class TileContent:
+    """One content URI that a tileset selection keeps: its tile's transform (tile → tileset's
+    parent frame, ECEF at the top) and refinement, which an external tileset's root inherits."""
+    uri: str
+    T: np.ndarray
+    refine: str
+
+    @property
+    def is_tileset(self) -> bool:
+        return urlsplit(self.uri).path.lower().endswith(".json")
+
+
+def tileset_contents(tile: dict, T_parent: np.ndarray, refine: str, max_geometric_error_m: float,
+                     keep: Callable[[dict, np.ndarray], bool] = lambda tile, T: True) -> Iterator[TileContent]:
+    """The contents a viewer needs to show the tileset with at most max_geometric_error_m of error
+    (3D Tiles 1.1 §"Geometric error", §"Refinement"): descend while a tile's ``geometricError`` is
+    above the target and it has children; a REPLACE tile's content is kept only where the descent
+    stops there, an ADD tile's on the way down too (its children add to it). External tilesets
+    (.json content) are yielded for the caller to open and continue with the same rules; their
+    root inherits T and refine. ``keep(tile, T)`` prunes whole subtrees (e.g. a fetch radius)."""
+    T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
+    if not keep(tile, T):
+        return
+    refine = str(tile.get("refine", refine)).upper()
+    children = tile.get("children") or []
+    stop = not children or float(tile.get("geometricError", 0.0)) <= max_geometric_error_m
+    for c in ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or []):
+        content = TileContent(c.get("uri") or c.get("url") or "", T, refine)
+        if content.uri and (stop or refine == "ADD" or content.is_tileset):
+            yield content
+    if not stop:
+        for ch in children:
+            yield from tileset_contents(ch, T, refine, max_geometric_error_m, keep)
+
+
+def _relative_uri(ts_path: Path, uri: str) -> Path:
+    parts = urlsplit(uri)
+    if parts.scheme or parts.path.startswith("/"):
+        raise GisFormatError(ts_path, f"content URI {uri!r} is not relative to the tileset; fetch the tileset "
+                                      "from its server (an http(s):// source) so its URIs are mirrored")
+    return ts_path.parent / unquote(parts.path)
+
+
+def _walk_tileset(path: Path, T_parent: np.ndarray, refine: str, spacing: float, out: list[GisModel], depth: int,
+                  resolve: Callable[[Path, str], Path | None]) -> None:
     if depth > 16:
         raise GisFormatError(path, "external tilesets nested deeper than 16")
     doc = _read_json(path)
-    if "root" not in doc:
+    if not isinstance(doc, dict) or "root" not in doc:
         raise GisFormatError(path, "tileset.json without 'root'")
-    _walk_tile(path, doc["root"], T_parent, spacing, out, depth, skip)
-
-
-def _walk_tile(ts_path: Path, tile: dict, T_parent: np.ndarray, spacing: float, out: list[GisModel], depth: int,
-               skip: bool) -> None:
-    T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
-    children = tile.get("children") or []
-    contents = ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or [])
+    try:
+        contents = list(tileset_contents(doc["root"], T_parent, refine, spacing))
+    except (AttributeError, KeyError, TypeError, ValueError) as e:  # a tile that is not a tile
+        raise GisFormatError(path, f"malformed tile: {type(e).__name__}: {e}") from None
     for c in contents:
-        uri = c.get("uri") or c.get("url")
-        if not uri:
+        cpath = resolve(path, c.uri)
+        if cpath is None:
             continue
-        cpath = ts_path.parent / uri.split("?")[0]
-        if skip and not cpath.is_file():
-            continue
-        if uri.lower().endswith(".json"):
-            _walk_tileset(cpath, T, spacing, out, depth + 1, skip)
-        elif not children:
-            out.append(_load_tile_content(cpath, T, spacing))
-    for ch in children:
-        _walk_tile(ts_path, ch, T, spacing, out, depth, skip)
+        if c.is_tileset:
+            _walk_tileset(cpath, c.T, c.refine, spacing, out, depth + 1, resolve)
+        else:
+            out.append(_load_tile_content(cpath, c.T, spacing))
 
 
 def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
@@ -562,12 +612,12 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
         data = data[28 + ft_json + ft_bin + bt_json + bt_bin :]
     if data[:4] != b"glTF":
         raise GisFormatError(path, "tile content is neither b3dm nor glb")
+    gltf_json = _glb_json(path, data)
+    check_gltf_extensions(path, gltf_json)
+    cesium_rtc = gltf_json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
+    if cesium_rtc is not None:
+        rtc = np.asarray(cesium_rtc, float)
     try:
-        jlen = struct.unpack("<I", data[12:16])[0]
-        gltf_json = json.loads(data[20 : 20 + jlen])
-        cesium_rtc = gltf_json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
-        if cesium_rtc is not None:
-            rtc = np.asarray(cesium_rtc, float)
         scene = trimesh.load(io.BytesIO(data), file_type="glb", force="scene")
         mesh = scene.to_mesh()
         p, n, _ = sample_mesh(mesh, spacing)
@@ -585,3 +635,33 @@ def _read_json(path: Path):
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise GisFormatError(path, f"invalid JSON: {e}") from None
+
+
+def _glb_json(path: Path, data: bytes) -> dict:
+    """The JSON chunk of a binary glTF (glTF 2.0 §"GLB File Format Specification")."""
+    try:
+        magic, _, _, jlen, jtype = struct.unpack("<4sIIII", data[:20])
+        if magic != b"glTF" or jtype != 0x4E4F534A:  # "JSON"
+            raise ValueError("no JSON chunk first")
+        doc = json.loads(data[20 : 20 + jlen])
+    except (struct.error, ValueError, UnicodeDecodeError) as e:
+        raise GisFormatError(path, f"cannot parse glb header: {type(e).__name__}: {e}") from None
+    if not isinstance(doc, dict):
+        raise GisFormatError(path, "glb JSON chunk is not an object")
+    return doc
+
+
+#: glTF extensions a file may require that leave our geometry right: materials and textures are not
+#: read, CESIUM_RTC is applied by the 3D Tiles loader, Draco is decoded by trimesh (with DracoPy).
+_GLTF_HARMLESS_PREFIXES = ("KHR_materials_", "KHR_texture_", "EXT_texture_")
+_GLTF_DECODED = ("CESIUM_RTC", "KHR_draco_mesh_compression")
+
+
+def check_gltf_extensions(path: Path, gltf: dict) -> None:
+    """Refuse a glTF whose ``extensionsRequired`` (glTF 2.0 §3.12: a loader that does not support
+    one must not load the asset) names one we cannot honour. trimesh does not check them: a
+    meshopt-compressed or quantized mesh would load as zeros or at the wrong scale."""
+    required = [str(e) for e in gltf.get("extensionsRequired") or []]
+    bad = [e for e in required if not (e in _GLTF_DECODED or e.startswith(_GLTF_HARMLESS_PREFIXES))]
+    if bad:
+        raise GisFormatError(path, f"glTF requires unsupported extension(s) {', '.join(bad)}")

@@ -5,10 +5,14 @@ Providers:
   within the radius.
 - ``HttpTilesProvider(tileset_url, download_dir, timeout_s)``: a 3D Tiles server over HTTP(S)
   (Cesium ion / Google Photorealistic 3D Tiles style ``tileset.json``). Downloads the tileset,
-  the external tilesets and the leaf contents whose bounding volume comes within the radius, into
-  ``download_dir`` mirroring the URL paths (already downloaded files are reused: the cache), with
-  a timeout per request; then loads the local mirror. API keys go in the URL's query, which is
-  kept for every request.
+  the external tilesets and the tile contents that ``gis.loaders.tileset_contents`` selects for
+  the sampling spacing (no finer level than that: a Google tileset's leaves within 10 km would be
+  terabytes) whose bounding volume comes within the radius, into ``download_dir`` mirroring the
+  URL paths (already downloaded files are reused: the cache; only the top tileset is asked for
+  again, as a server's session expires, and its mirrored copy serves when that fails), with a
+  timeout per request; then loads the local mirror. URIs may be relative or absolute paths; a
+  URI's request carries the query of the document that named it (the tileset URL's API key, then
+  Google's ``session`` from its root) besides its own, as CesiumJS does: Google's API needs both.
 """
 from __future__ import annotations
 
@@ -16,13 +20,13 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import urljoin, urlsplit
+from urllib.parse import parse_qsl, unquote, urlencode, urljoin, urlsplit, urlunsplit
 
 import numpy as np
 import requests
 
 from gis.geodesy import LocalFrame, geodetic_to_ecef
-from gis.loaders import load_3dtiles, load_model
+from gis.loaders import load_3dtiles, load_model, tileset_contents
 from gis.model import GisFormatError, GisModel, merge_models
 
 log = logging.getLogger(__name__)
@@ -67,27 +71,35 @@ class HttpTilesProvider:
 
     def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
         centre = geodetic_to_ecef(lat_deg, lon_deg, 0.0)
-        local = self._download(self.tileset_url, np.eye(4), centre, radius_m, depth=0)
+        urls: dict[Path, str] = {}  # every file this fetch mirrored → its URL
+        local = self._download(self.tileset_url, np.eye(4), "REPLACE", centre, radius_m, 0, urls)
+
+        def resolve(ts_path: Path, uri: str) -> Path | None:  # outside the radius: not fetched, left out
+            path = self._local_path(urljoin(urls[ts_path], uri))
+            return path if path in urls else None
+
         try:
-            return [load_3dtiles(local, self.sample_spacing_m, skip_missing=True)]
+            return [load_3dtiles(local, self.sample_spacing_m, resolve=resolve)]
         except GisFormatError as e:
             if "no b3dm/glb content" in str(e):
                 return []
             raise
 
     def _local_path(self, url: str) -> Path:
-        return self.download_dir / urlsplit(url).netloc.replace(":", "_") / urlsplit(url).path.lstrip("/")
+        return self.download_dir / urlsplit(url).netloc.replace(":", "_") / unquote(urlsplit(url).path).lstrip("/")
 
-    def _get(self, url: str) -> Path:
+    def _get(self, url: str, urls: dict[Path, str], refresh: bool = False) -> Path:
         dst = self._local_path(url)
-        if dst.is_file():
+        urls[dst] = url
+        if dst.is_file() and not refresh:
             return dst
-        query = urlsplit(self.tileset_url).query
-        full = url if urlsplit(url).query or not query else f"{url}?{query}"
         try:
-            r = requests.get(full, timeout=self.timeout_s)
+            r = requests.get(url, timeout=self.timeout_s)
             r.raise_for_status()
         except requests.RequestException as e:
+            if dst.is_file():
+                log.warning("%s: %s; using the copy downloaded before", url, type(e).__name__)
+                return dst
             raise FetchError(f"{url}: {type(e).__name__}: {e}") from None
         dst.parent.mkdir(parents=True, exist_ok=True)
         tmp = dst.with_name(dst.name + ".part")
@@ -95,34 +107,35 @@ class HttpTilesProvider:
         tmp.replace(dst)
         return dst
 
-    def _download(self, url: str, T_parent: np.ndarray, centre: np.ndarray, radius_m: float, depth: int) -> Path:
+    def _download(self, url: str, T_parent: np.ndarray, refine: str, centre: np.ndarray, radius_m: float, depth: int,
+                  urls: dict[Path, str]) -> Path:
         if depth > 16:
             raise FetchError(f"{url}: external tilesets nested deeper than 16")
-        path = self._get(url)
+        path = self._get(url, urls, refresh=depth == 0)
         try:
             doc = json.loads(path.read_text())
-            self._walk(url, doc["root"], T_parent, centre, radius_m, depth)
-        except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as e:
+            contents = list(tileset_contents(doc["root"], T_parent, refine, self.sample_spacing_m,
+                                             keep=lambda tile, T: _near(tile.get("boundingVolume", {}), T, centre, radius_m)))
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
             path.unlink(missing_ok=True)
             raise FetchError(f"{url}: not a 3D Tiles tileset ({type(e).__name__}: {e})") from None
+        for c in contents:
+            if c.is_tileset:
+                self._download(_child_url(url, c.uri), c.T, c.refine, centre, radius_m, depth + 1, urls)
+            else:
+                self._get(_child_url(url, c.uri), urls)
         return path
 
-    def _walk(self, base: str, tile: dict, T_parent: np.ndarray, centre, radius_m, depth) -> None:
-        T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
-        if not _near(tile.get("boundingVolume", {}), T, centre, radius_m):
-            return
-        children = tile.get("children") or []
-        for c in ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or []):
-            uri = c.get("uri") or c.get("url")
-            if not uri:
-                continue
-            url = urljoin(base, uri)
-            if uri.lower().split("?")[0].endswith(".json"):
-                self._download(url, T, centre, radius_m, depth + 1)
-            elif not children:
-                self._get(url)
-        for ch in children:
-            self._walk(base, ch, T, centre, radius_m, depth)
+
+def _child_url(base: str, uri: str) -> str:
+    """The URL of ``uri`` named in the document at ``base``: resolved against it (RFC 3986), with
+    the URI's own query parameters first and then those of ``base`` it does not set (an API key, a
+    session), so that every request down the tree carries them."""
+    parts = urlsplit(urljoin(base, uri))
+    own = parse_qsl(parts.query, keep_blank_values=True)
+    names = {k for k, _ in own}
+    merged = own + [(k, v) for k, v in parse_qsl(urlsplit(base).query, keep_blank_values=True) if k not in names]
+    return urlunsplit(parts._replace(query=urlencode(merged)))
 
 
 def _near(bv: dict, T: np.ndarray, centre: np.ndarray, radius_m: float) -> bool:

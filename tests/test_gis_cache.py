@@ -146,8 +146,110 @@ def test_http_tiles_provider_radius_cache_and_errors(tmp_path, tile_server):
     assert any("0.b3dm?key=abc" in s for s in seen) and not any("1.b3dm" in s for s in seen)
     n = len(seen)
     fetch_model([prov], 47.3769, 8.5417, 10_000.0)  # second fetch: served from the download cache
-    assert len(seen) == n
+    assert seen[n:] == ["/tileset.json?key=abc"]  # but for the top tileset (a server's session may have expired)
     with pytest.raises(FetchError, match="404"):
         HttpTilesProvider(f"{url}/missing.json", tmp_path / "dl2", timeout_s=5.0).fetch(47.3, 8.5, 100.0)
     with pytest.raises(FetchError, match="127.0.0.1:9"):
         HttpTilesProvider("http://127.0.0.1:9/tileset.json", tmp_path / "dl3", timeout_s=2.0).fetch(47.3, 8.5, 100.0)
+
+
+def _draco_box_glb(extents, offset_yup=(0.0, 0.0, 0.0)) -> bytes:
+    """A box as a Draco-compressed binary glTF (trimesh + DracoPy, KHR_draco_mesh_compression), in
+    glTF's Y-up axes like Google's tiles."""
+    box = trimesh.creation.box(extents=extents)
+    box.apply_translation(offset_yup)
+    return trimesh.Scene(box).export(file_type="glb", extension_draco=True)
+
+
+@pytest.fixture()
+def google_like_server(tmp_path):
+    """A server shaped like Google Photorealistic 3D Tiles: every request needs ``key``; the root
+    names an external tileset by an absolute path with a ``session``, which every request below it
+    needs too although the URIs there do not repeat it; Draco glb content; an HLOD tree
+    (REPLACE) whose coarse, middle and finest levels have geometric errors 20, 0.5 and 0 m, plus a
+    far branch 11 km away. ``rotate()`` starts a new session and ends the old one."""
+    lat, lon, h = 47.3769, 8.5417, 450.0
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_ecef_enu(lat, lon), geodetic_to_ecef(lat, lon, h)  # tile frame: ENU at the site
+    far = np.eye(4)
+    far[:3, :3], far[:3, 3] = R_ecef_enu(lat + 0.1, lon), geodetic_to_ecef(lat + 0.1, lon, h)
+    files = {"coarse.glb": _draco_box_glb([60, 4, 60]),
+             "mid_0.glb": _draco_box_glb([30, 12, 20], (-20, 0, 0)), "mid_1.glb": _draco_box_glb([30, 12, 20], (20, 0, 0)),
+             "fine_0.glb": _draco_box_glb([30, 12, 20]), "fine_1.glb": _draco_box_glb([30, 12, 20]),
+             "far.glb": _draco_box_glb([30, 12, 20])}
+    base = "/v1/3dtiles/datasets/CgA/files/"
+
+    def mid(i):  # absolute-path URIs without the session, one relative
+        return {"boundingVolume": {"sphere": [0, 0, 0, 40]}, "geometricError": 0.5,
+                "content": {"uri": f"{base}mid_{i}.glb" if i == 0 else f"mid_{i}.glb"},
+                "children": [{"boundingVolume": {"sphere": [0, 0, 0, 40]}, "geometricError": 0,
+                              "content": {"uri": f"{base}fine_{i}.glb"}}]}
+    sub = {"asset": {"version": "1.0"}, "geometricError": 100, "root": {
+        "boundingVolume": {"sphere": [0, 0, 0, 7e6]}, "geometricError": 50, "refine": "REPLACE", "children": [
+            {"boundingVolume": {"sphere": [0, 0, 0, 60]}, "geometricError": 20, "transform": T.T.reshape(-1).tolist(),
+             "content": {"uri": "coarse.glb"}, "children": [mid(0), mid(1)]},
+            {"boundingVolume": {"sphere": [0, 0, 0, 60]}, "geometricError": 0, "transform": far.T.reshape(-1).tolist(),
+             "content": {"uri": f"{base}far.glb"}}]}}
+    session = ["s1"]
+    seen: list[tuple[str, dict]] = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *a):
+            pass
+
+        def do_GET(self):
+            from urllib.parse import parse_qs, urlsplit
+            u = urlsplit(self.path)
+            q = {k: v[0] for k, v in parse_qs(u.query).items()}
+            seen.append((u.path, q))
+            if q.get("key") != "K":
+                return self.send_error(403, "API key missing")
+            if u.path == "/v1/3dtiles/root.json":
+                body = json.dumps({"asset": {"version": "1.0"}, "geometricError": 1e7, "root": {
+                    "boundingVolume": {"sphere": [0, 0, 0, 7e6]}, "geometricError": 1e7, "refine": "REPLACE",
+                    "children": [{"boundingVolume": {"sphere": [0, 0, 0, 7e6]}, "geometricError": 1e6,
+                                  "content": {"uri": f"{base}sub.json?session={session[0]}"}}]}}).encode()
+            elif u.path.startswith(base) and q.get("session") != session[0]:
+                return self.send_error(400, "session expired or missing")
+            elif u.path == base + "sub.json":
+                body = json.dumps(sub).encode()
+            elif u.path.startswith(base) and u.path[len(base):] in files:
+                body = files[u.path[len(base):]]
+            else:
+                return self.send_error(404)
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+
+    def rotate():
+        session[0] = session[0] + "x"
+    yield f"http://127.0.0.1:{srv.server_address[1]}/v1/3dtiles/root.json?key=K", seen, rotate
+    srv.shutdown()
+
+
+def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google_like_server):
+    """Fetched as Google serves them: key and session on every request, the coarsest level fine
+    enough for the sampling spacing (1 m: the middle level, 0.5 m; neither the 20 m coarse tile nor
+    the finest), Draco content decoded into the two boxes where they stand; a later fetch after the
+    session expired asks the top tileset again and reaches the far tile with the new session."""
+    url, seen, rotate = google_like_server
+    prov = HttpTilesProvider(url, tmp_path / "dl", timeout_s=5.0, sample_spacing_m=1.0)
+    m = fetch_model([prov], 47.3769, 8.5417, 2_000.0)
+    got = {p.rsplit("/", 1)[-1] for p, q in seen}
+    assert got == {"root.json", "sub.json", "mid_0.glb", "mid_1.glb"}, got
+    assert all(q.get("key") == "K" for _, q in seen) and all(q.get("session") == "s1" for p, q in seen if "datasets" in p)
+    enu = ORIGIN.ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
+    assert np.ptp(enu[:, 2]) == pytest.approx(12.0, abs=0.1)  # Draco decoded, glTF Y is up
+    assert np.ptp(enu[:, 0]) == pytest.approx(70.0, abs=0.2) and np.ptp(enu[:, 1]) == pytest.approx(20.0, abs=0.2)
+    assert abs(enu[:, 0].mean()) < 1.0 and abs(enu[:, 1].mean()) < 1.0  # the two boxes side by side about the site
+
+    rotate()
+    n = len(seen)
+    m2 = fetch_model([prov], 47.3769, 8.5417, 20_000.0)  # now the far branch too
+    assert [p.rsplit("/", 1)[-1] for p, _ in seen[n:]] == ["root.json", "far.glb"]  # the rest from the mirror
+    assert seen[-1][1] == {"session": "s1x", "key": "K"}
+    assert len(m2) > len(m)
