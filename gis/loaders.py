@@ -7,8 +7,8 @@ Formats (dispatched on content, then extension):
   come from a ``classification``/``label`` vertex or face property when present.
 - Point clouds PLY (sidecar) and LAS/LAZ (CRS from the WKT/GeoTIFF VLR, read by laspy + pyproj),
   labels from the LAS classification; normals from the file or estimated (open3d, k-NN PCA).
-- CityJSON (``metadata.referenceSystem``): every surface of the highest LoD geometry of each
-  city object, labelled by object type.
+- CityJSON (``metadata.referenceSystem``) and CityJSONSeq (``.jsonl``): every surface of the
+  highest LoD geometry of each city object (geometry templates instanced), labelled by object type.
 - GeoJSON building footprints (WGS-84 lon/lat, RFC 7946), extruded by ``height`` (m) or by
   ``building:levels`` × 3 m, else ``DEFAULT_BUILDING_HEIGHT_M``; the base is the polygon's third
   coordinate (ellipsoidal height) if given, else ``ground_h_msl_m`` (the site's ground, MSL, turned
@@ -33,9 +33,10 @@ import io
 import json
 import logging
 import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator
 from urllib.parse import unquote, urlsplit
 
 import numpy as np
@@ -43,7 +44,9 @@ import open3d as o3d
 import trimesh
 from matplotlib.path import Path as PolyPath
 from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
+from pyproj import datadir as pyproj_datadir
+from pyproj.exceptions import CRSError, ProjError
+from pyproj.transformer import TransformerGroup
 
 from gis.geodesy import LocalFrame, geodetic_to_ecef, msl_to_ellipsoid
 from gis.model import (
@@ -78,6 +81,8 @@ def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_msl_m: 
     name = path.name.lower()
     if name.endswith((".pbf", ".osm", ".osm.bz2", ".osm.gz")):
         return load_osm(path, sample_spacing_m, ground_h_msl_m)
+    if name.endswith(".jsonl"):
+        return load_cityjson_seq(path, sample_spacing_m)
     with open(path, "rb") as f:
         head = f.read(16)
     if head.startswith(b"ply"):
@@ -144,7 +149,22 @@ def crs_to_ecef(p: np.ndarray, crs: CRS, vertical: str = "ellipsoid") -> np.ndar
 
 
 def _transformer(wkt: str) -> Transformer:
-    return Transformer.from_crs(CRS.from_wkt(wkt), "EPSG:4979", always_xy=True)
+    """CRS → WGS 84 (lon, lat, ellipsoidal h), refusing PROJ's "ballpark" fallback: without the
+    grid a vertical datum needs, PROJ would carry NAP or DHHN heights over unchanged as ellipsoidal
+    ones (measured: EPSG:7415 NAP 0 m → h 0 m, where the geoid lies ~43 m above the ellipsoid),
+    a model tens of metres too low, silently."""
+    crs = CRS.from_wkt(wkt)
+    try:
+        return Transformer.from_crs(crs, "EPSG:4979", always_xy=True, allow_ballpark=False)
+    except ProjError:
+        with warnings.catch_warnings():  # pyproj warns of the missing grid; the error below names it
+            warnings.simplefilter("ignore", UserWarning)
+            group = TransformerGroup(crs, "EPSG:4979", always_xy=True, allow_ballpark=False)
+        grids = sorted({g.short_name for op in group.unavailable_operations for g in op.grids if not g.available})
+        raise ValueError("PROJ has no exact transformation to WGS 84 heights on this machine" + (
+            f"; it needs the grid(s) {', '.join(grids)} (https://cdn.proj.org/, into {pyproj_datadir.get_user_data_dir()}, "
+            "e.g. `projsync --file NAME`)" if grids else " (none is known for this vertical datum: convert the file to "
+            "ellipsoidal or EGM96 heights first)")) from None
 
 
 def _normals_to_ecef(p: np.ndarray, n: np.ndarray, crs: CRS, vertical: str) -> np.ndarray:
@@ -300,29 +320,35 @@ def sample_polygon(outer: np.ndarray, holes: list[np.ndarray], spacing_m: float)
     return o + g[:, :1] * u + g[:, 1:] * v, nrm
 
 
-def load_cityjson(path: Path, sample_spacing_m: float = 1.0, doc: dict | None = None) -> GisModel:
+def load_cityjson(path: Path, sample_spacing_m: float = 1.0, doc: dict | None = None,
+                  features: Iterable[dict] = ()) -> GisModel:
+    """A CityJSON file, or a CityJSONSeq one (``load_cityjson_seq``): ``doc`` the CityJSON object
+    (CRS, ``transform``, templates), ``features`` the CityJSONFeature objects after it, each with
+    its own CityObjects and vertices."""
     doc = doc if doc is not None else _read_json(path)
     try:
         ref = doc.get("metadata", {}).get("referenceSystem")
         if not ref:
             raise GisFormatError(path, "CityJSON has no metadata.referenceSystem; cannot georeference")
         crs = _cityjson_crs(path, ref)
-        v = np.asarray(doc["vertices"], float)
-        if "transform" in doc:
-            v = v * np.asarray(doc["transform"]["scale"], float) + np.asarray(doc["transform"]["translate"], float)
         pts, nrms, labs = [], [], []
-        for obj_id, obj in doc["CityObjects"].items():
-            geoms = obj.get("geometry", [])
-            if not geoms:
-                continue
-            g = max(geoms, key=lambda g: float(g.get("lod", 0)))
-            label = _CITYJSON_LABELS.get(obj.get("type", ""), UNCLASSIFIED)
-            for surface in _surfaces(g["boundaries"]):
-                rings = [v[np.asarray(r, int)] for r in surface]
-                p, n = sample_polygon(rings[0], rings[1:], sample_spacing_m)
-                pts.append(p)
-                nrms.append(np.broadcast_to(n, p.shape))
-                labs.append(np.full(len(p), label, np.uint8))
+        for part in [doc, *features]:
+            v = np.asarray(part["vertices"], float).reshape(-1, 3)
+            if "transform" in doc:
+                v = v * np.asarray(doc["transform"]["scale"], float) + np.asarray(doc["transform"]["translate"], float)
+            for obj in part["CityObjects"].values():
+                geoms = [_cityjson_geometry(doc, v, g) for g in obj.get("geometry", [])]
+                geoms = [g for g in geoms if g is not None]
+                if not geoms:
+                    continue
+                _, gv, boundaries = max(geoms, key=lambda g: g[0])
+                label = _CITYJSON_LABELS.get(obj.get("type", ""), UNCLASSIFIED)
+                for surface in _surfaces(boundaries):
+                    rings = [gv[np.asarray(r, int)] for r in surface]
+                    p, n = sample_polygon(rings[0], rings[1:], sample_spacing_m)
+                    pts.append(p)
+                    nrms.append(np.broadcast_to(n, p.shape))
+                    labs.append(np.full(len(p), label, np.uint8))
     except (KeyError, TypeError, IndexError, ValueError) as e:
         if isinstance(e, GisFormatError):
             raise
@@ -331,6 +357,39 @@ def load_cityjson(path: Path, sample_spacing_m: float = 1.0, doc: dict | None = 
         raise GisFormatError(path, "CityJSON holds no surfaces")
     p, n = np.concatenate(pts), np.concatenate(nrms)
     return _georeferenced(path, p, n, np.concatenate(labs), crs, np.zeros(3), "ellipsoid", sample_spacing_m)
+
+
+_CITYJSON_SURFACE_TYPES = ("MultiSurface", "CompositeSurface", "Solid", "MultiSolid", "CompositeSolid")
+
+
+def _cityjson_geometry(doc: dict, v: np.ndarray, g: dict) -> tuple[float, np.ndarray, list] | None:
+    """(LoD, vertices, boundaries) of a CityJSON geometry that has surfaces, None for points and
+    lines. A GeometryInstance (CityJSON 2.0 §"Geometry templates": trees, street furniture) is its
+    template's geometry moved by ``transformationMatrix`` (4×4, row-major) onto its reference
+    vertex; template vertices are real coordinates, not scaled by ``transform``."""
+    if g.get("type") == "GeometryInstance":
+        templates = doc["geometry-templates"]
+        t = templates["templates"][int(g["template"])]
+        M = np.asarray(g["transformationMatrix"], float).reshape(4, 4)
+        tv = np.asarray(templates["vertices-templates"], float) @ M[:3, :3].T + M[:3, 3] + v[int(g["boundaries"][0])]
+        return (float(t.get("lod", 0)), tv, t["boundaries"]) if t.get("type") in _CITYJSON_SURFACE_TYPES else None
+    return (float(g.get("lod", 0)), v, g["boundaries"]) if g.get("type") in _CITYJSON_SURFACE_TYPES else None
+
+
+def load_cityjson_seq(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
+    """CityJSON Text Sequences (CityJSONSeq, ``.city.jsonl``, as cjio and the 3D BAG write them):
+    a CityJSON object on the first line, then one CityJSONFeature per line."""
+    try:
+        lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        docs = [json.loads(ln) for ln in lines]
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise GisFormatError(path, f"invalid CityJSONSeq line: {e}") from None
+    if not docs or not isinstance(docs[0], dict) or docs[0].get("type") != "CityJSON":
+        raise GisFormatError(path, "CityJSONSeq must start with a CityJSON object")
+    bad = [i + 1 for i, d in enumerate(docs[1:], 1) if not isinstance(d, dict) or d.get("type") != "CityJSONFeature"]
+    if bad:
+        raise GisFormatError(path, f"line {bad[0]} is not a CityJSONFeature")
+    return load_cityjson(path, sample_spacing_m, docs[0], docs[1:])
 
 
 def _cityjson_crs(path: Path, ref: str) -> CRS:

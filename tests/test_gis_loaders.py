@@ -133,6 +133,76 @@ def _cityjson_cube(size=20.0, h=15.0):
     }
 
 
+def test_cityjson_geometry_instances_and_point_geometries(tmp_path):
+    """A tree as a GeometryInstance (a 2×4×6 m box template, turned 90° about up, on a reference
+    vertex 50 m east; template vertices not scaled by ``transform``) lands where the instance puts
+    it; a MultiPoint geometry (no surfaces) is left out instead of failing the file."""
+    from gis.model import HIGH_VEGETATION
+    doc = _cityjson_cube()
+    ref = len(doc["vertices"])
+    doc["vertices"].append([50_000, 0, 0])  # scaled by transform: 50 m east of the cube's corner
+    box = [[0, 0, 0], [2, 0, 0], [2, 4, 0], [0, 4, 0], [0, 0, 6], [2, 0, 6], [2, 4, 6], [0, 4, 6]]
+    faces = [[[0, 3, 2, 1]], [[4, 5, 6, 7]], [[0, 1, 5, 4]], [[1, 2, 6, 5]], [[2, 3, 7, 6]], [[3, 0, 4, 7]]]
+    doc["geometry-templates"] = {"templates": [{"type": "MultiSurface", "lod": "1", "boundaries": faces}],
+                                 "vertices-templates": box}
+    turn = [[0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]  # +90° about up: x → y, y → −x
+    doc["CityObjects"]["tree"] = {"type": "SolitaryVegetationObject", "geometry": [
+        {"type": "GeometryInstance", "template": 0, "boundaries": [ref], "transformationMatrix": sum(turn, [])}]}
+    doc["CityObjects"]["lamp"] = {"type": "CityFurniture", "geometry": [{"type": "MultiPoint", "lod": "1", "boundaries": [ref]}]}
+    path = tmp_path / "trees.city.json"
+    path.write_text(json.dumps(doc))
+    m = load_model(path, sample_spacing_m=0.5)
+    x, y, z = Transformer.from_crs("EPSG:4978", UTM, always_xy=True).transform(*_model_ecef(m)[m.labels == HIGH_VEGETATION].T)
+    q = np.stack([x, y, z], 1) - OFFSET
+    assert len(q) > 50
+    np.testing.assert_allclose(q.min(axis=0), [46.0, 0.0, 0.0], atol=0.05)  # x ∈ [50−4, 50], y ∈ [0, 2]
+    np.testing.assert_allclose(q.max(axis=0), [50.0, 2.0, 6.0], atol=0.05)
+    assert np.sum(m.labels == BUILDING) > 2 * 20 * 20
+
+
+def test_cityjson_seq_features_with_their_own_vertices(tmp_path):
+    """CityJSONSeq: the header's transform applies to every feature's own vertex list; two cubes,
+    the second 40 m north; a line that is not a CityJSONFeature is named."""
+    cube = _cityjson_cube()
+    header = {k: v for k, v in cube.items() if k not in ("CityObjects", "vertices")} | {"CityObjects": {}, "vertices": []}
+    features = []
+    for i, north_mm in enumerate((0, 40_000)):
+        features.append({"type": "CityJSONFeature", "id": f"b{i}", "CityObjects": {f"b{i}": cube["CityObjects"]["b1"]},
+                         "vertices": [[x, y + north_mm, z] for x, y, z in cube["vertices"]]})
+    path = tmp_path / "tile.city.jsonl"
+    path.write_text("\n".join(json.dumps(d) for d in [header, *features]) + "\n")
+    m = load_model(path, sample_spacing_m=1.0)
+    x, y, z = Transformer.from_crs("EPSG:4978", UTM, always_xy=True).transform(*_model_ecef(m).T)
+    q = np.stack([x, y, z], 1) - OFFSET
+    assert np.all(m.labels == BUILDING)
+    assert np.sum(q[:, 1] < 20.001) == pytest.approx(np.sum(q[:, 1] > 39.999), rel=0.05)  # one cube each
+    np.testing.assert_allclose(q.max(axis=0), [20.0, 60.0, 15.0], atol=1e-3)
+    path.write_text("\n".join(json.dumps(d) for d in [header, features[0], {"type": "CityJSON"}]))
+    with pytest.raises(GisFormatError, match="line 3 is not a CityJSONFeature"):
+        load_model(path)
+
+
+def test_a_vertical_datum_without_its_grid_is_refused_not_guessed(tmp_path):
+    """The Dutch 3D BAG's CRS, RD New + NAP height (EPSG:7415): NAP needs the nlgeo2018 geoid grid.
+    Without it PROJ's ballpark fallback took NAP heights as ellipsoidal ones (a model ~43 m too
+    low, loaded without a word); now the file is refused naming the grid. Where the grid is
+    installed, NAP 0 m lands ~43 m above the ellipsoid."""
+    from pyproj.transformer import TransformerGroup
+    doc = _cityjson_cube()
+    doc["transform"]["translate"] = [155000.0, 463000.0, 0.0]
+    doc["metadata"]["referenceSystem"] = "https://www.opengis.net/def/crs/EPSG/0/7415"
+    path = tmp_path / "bag.city.json"
+    path.write_text(json.dumps(doc))
+    if TransformerGroup("EPSG:7415", "EPSG:4979", allow_ballpark=False).best_available:
+        m = load_model(path)
+        h = m.origin.enu_to_geodetic(m.points_enu)[2]
+        assert 40.0 < h.min() < 46.0, h.min()
+    else:
+        with pytest.raises(GisFormatError, match="nl_nsgi_nlgeo2018") as e:
+            load_model(path)
+        assert str(path) in str(e.value)
+
+
 def test_cityjson_building(tmp_path):
     path = tmp_path / "city.json"
     path.write_text(json.dumps(_cityjson_cube()))
