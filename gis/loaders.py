@@ -414,6 +414,7 @@ def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: floa
                  doc: dict | None = None) -> GisModel:
     doc = doc if doc is not None else _read_json(path)
     feats = doc["features"] if doc.get("type") == "FeatureCollection" else [doc]
+    to_lonlat = _geojson_legacy_crs(path, doc.get("crs"))
     footprints = []  # Footprint
     for i, f in enumerate(feats):
         try:
@@ -422,9 +423,11 @@ def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: floa
             polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"] if g["type"] == "MultiPolygon" else []
             height = _building_height(props)
             for poly in polys:
-                rings = [np.asarray(r, float) for r in poly]
+                rings = [to_lonlat(np.asarray(r, float)) for r in poly]
                 if rings[0].ndim != 2 or len(rings[0]) < 4:
                     raise ValueError("polygon ring needs at least 4 positions")
+                if np.any(np.abs(rings[0][:, 0]) > 180) or np.any(np.abs(rings[0][:, 1]) > 90):
+                    raise ValueError("coordinates are not WGS 84 lon/lat (RFC 7946); projected ones need a 'crs' member")
                 base = float(np.mean(rings[0][:, 2])) if rings[0].shape[1] > 2 else None
                 footprints.append(Footprint(rings, base, float(props.get("min_height", 0.0)), height))
         except (KeyError, TypeError, ValueError) as e:
@@ -432,6 +435,31 @@ def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: floa
     if not footprints:
         raise GisFormatError(path, "GeoJSON holds no Polygon/MultiPolygon footprints")
     return _extruded_buildings(path, footprints, sample_spacing_m, ground_h_msl_m)
+
+
+def _geojson_legacy_crs(path: Path, member) -> Callable[[np.ndarray], np.ndarray]:
+    """RFC 7946 GeoJSON is WGS 84 lon/lat; the 2008 specification's ``crs`` member (still written by
+    QGIS and GDAL for projected data: {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::28992"}})
+    names another CRS. Returns the map from a ring's positions to lon/lat (third coordinate kept)."""
+    if member is None:
+        return lambda r: r
+    try:
+        crs = CRS.from_user_input(member["properties"]["name"])
+    except (KeyError, TypeError, CRSError) as e:
+        raise GisFormatError(path, f"unreadable 'crs' member {member!r}: {e}") from None
+    if crs.equals(CRS.from_epsg(4326), ignore_axis_order=True):
+        return lambda r: r
+    try:
+        to_geo = _transformer(crs.to_wkt())
+    except ValueError as e:
+        raise GisFormatError(path, f"cannot transform from {crs.name}: {e}") from None
+
+    def to_lonlat(r: np.ndarray) -> np.ndarray:
+        if r.ndim != 2 or r.shape[1] < 2:
+            return r
+        lon, lat, _ = to_geo.transform(r[:, 0], r[:, 1], np.zeros(len(r)))
+        return np.column_stack([lon, lat, r[:, 2:]])
+    return to_lonlat
 
 
 def load_osm(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:

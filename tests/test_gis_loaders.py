@@ -243,6 +243,29 @@ def test_geojson_footprints_height_and_levels(tmp_path):
     assert h[~first].min() > 409.9
 
 
+def test_geojson_in_a_projected_crs_named_by_a_legacy_crs_member(tmp_path):
+    """GeoJSON as QGIS/GDAL write projected data (the 2008 spec's ``crs`` member, UTM 32N here) lands
+    where the same footprint in lon/lat does; without the member those numbers are refused, not
+    read as degrees."""
+    lat0, lon0, d = 47.37, 8.54, 0.0002
+    ring = [[lon0, lat0], [lon0 + d, lat0], [lon0 + d, lat0 + d], [lon0, lat0 + d], [lon0, lat0]]
+    to_utm = Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
+    utm = [[*to_utm.transform(x, y), 410.0] for x, y in ring]
+    feature = {"type": "Feature", "properties": {"height": 12.0}, "geometry": {"type": "Polygon", "coordinates": [utm]}}
+    projected = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32632"}},
+                 "features": [feature]}
+    lonlat = {"type": "FeatureCollection", "features": [
+        {**feature, "geometry": {"type": "Polygon", "coordinates": [[[x, y, 410.0] for x, y in ring]]}}]}
+    (tmp_path / "utm.geojson").write_text(json.dumps(projected))
+    (tmp_path / "ll.geojson").write_text(json.dumps(lonlat))
+    a, b = load_model(tmp_path / "utm.geojson"), load_model(tmp_path / "ll.geojson")
+    np.testing.assert_allclose(_model_ecef(a), _model_ecef(b), atol=1e-3)
+    del projected["crs"]
+    (tmp_path / "utm.geojson").write_text(json.dumps(projected))
+    with pytest.raises(GisFormatError, match="not WGS 84 lon/lat"):
+        load_model(tmp_path / "utm.geojson")
+
+
 def _write_osm(path, lat0: float, lon0: float) -> float:
     """A real .osm.pbf (pyosmium's writer): a 4-level way, a multipolygon relation with a courtyard
     (height 21.5 m, min_height 3 m), a building with an unreadable height, and a tagged road.
