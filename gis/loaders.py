@@ -5,8 +5,9 @@ Formats (dispatched on content, then extension):
   GLB/glTF follow glTF's Y-up convention: file (x, y, z) is CRS (x, −z, y), as 3D Tiles do.
   Meshes are sampled on their surface (``sample_spacing_m``), normals are face normals, labels
   come from a ``classification``/``label`` vertex or face property when present.
-- Point clouds PLY (sidecar) and LAS/LAZ (CRS from the WKT/GeoTIFF VLR, read by laspy + pyproj),
-  labels from the LAS classification; normals from the file or estimated (open3d, k-NN PCA).
+- Point clouds PLY (sidecar) and LAS/LAZ (CRS from the WKT/GeoTIFF VLR, read by laspy + pyproj,
+  in chunks, thinned to one point per sampling voxel), labels from the LAS classification; normals
+  from the file or estimated (open3d, k-NN PCA).
 - CityJSON (``metadata.referenceSystem``) and CityJSONSeq (``.jsonl``): every surface of the
   highest LoD geometry of each city object (geometry templates instanced), labelled by object type.
 - GeoJSON building footprints (WGS-84 lon/lat, RFC 7946), extruded by ``height`` (m) or by
@@ -88,7 +89,7 @@ def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_msl_m: 
     if head.startswith(b"ply"):
         return load_ply(path, sample_spacing_m)
     if head.startswith(b"LASF"):
-        return load_las(path)
+        return load_las(path, sample_spacing_m)
     if head.startswith(b"glTF"):
         return load_mesh(path, sample_spacing_m)
     if head.startswith(b"b3dm"):
@@ -223,7 +224,8 @@ def load_mesh(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
         n = None
         if raw is not None and all(k in raw.dtype.names for k in ("nx", "ny", "nz")):
             n = np.stack([raw["nx"], raw["ny"], raw["nz"]], axis=1).astype(float)
-        return _georeferenced(path, p, n, labels, crs, offset, vertical, sample_spacing_m)
+        keep = first_per_voxel(p, sample_spacing_m) if len(p) else slice(None)
+        return _georeferenced(path, p[keep], None if n is None else n[keep], labels[keep], crs, offset, vertical, sample_spacing_m)
     if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
         raise GisFormatError(path, f"no triangles or points found ({type(geom).__name__})")
     p, n, face_idx = sample_mesh(geom, sample_spacing_m)
@@ -264,21 +266,47 @@ def _mesh_labels(mesh: trimesh.Trimesh, face_idx: np.ndarray) -> np.ndarray:
 
 # --- LAS / LAZ ------------------------------------------------------------------------------
 
-def load_las(path: Path) -> GisModel:
+#: points read from a LAS/LAZ file at a time (bounded memory on a companion board: ~100 MB per chunk)
+LAS_CHUNK_POINTS = 2_000_000
+
+
+def load_las(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
+    """A LAS/LAZ point cloud, thinned to its first point in each sample_spacing_m voxel (file
+    coordinates) as it is read chunk by chunk: airborne surveys hold 10–50 points per m², which no
+    registration here uses (the fine-tuner voxelises its crop at ``target_voxel_m``), and a 1 km²
+    tile read whole would need several GB. A cloud sparser than the spacing keeps all its points."""
     import laspy
 
+    pts, labs = [], []
     try:
-        las = laspy.read(path)
-        crs = las.header.parse_crs()
+        with laspy.open(path) as f:
+            crs = f.header.parse_crs()
+            if crs is None:
+                raise GisFormatError(path, "LAS/LAZ has no CRS VLR (WKT or GeoTIFF keys); cannot georeference")
+            for chunk in f.chunk_iterator(LAS_CHUNK_POINTS):
+                xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(float)  # scaled + offset (a chunk is a ScaleAwarePointRecord)
+                keep = first_per_voxel(xyz, sample_spacing_m)
+                pts.append(xyz[keep])
+                labs.append(np.asarray(chunk.classification).astype(np.uint8)[keep])
+    except GisFormatError:
+        raise
     except Exception as e:  # laspy raises LaspyException, ValueError, struct errors...
         raise GisFormatError(path, f"cannot parse LAS/LAZ: {type(e).__name__}: {e}") from None
-    if crs is None:
-        raise GisFormatError(path, "LAS/LAZ has no CRS VLR (WKT or GeoTIFF keys); cannot georeference")
-    if len(las.points) == 0:
+    p = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if len(p) == 0:
         raise GisFormatError(path, "LAS/LAZ holds no points")
-    p = np.asarray(las.xyz, float)
-    labels = np.asarray(las.classification).astype(np.uint8)
-    return _georeferenced(path, p, None, labels, crs, np.zeros(3), "ellipsoid", _median_spacing(p))
+    keep = first_per_voxel(p, sample_spacing_m)  # voxels that straddle two chunks
+    p, labels = p[keep], np.concatenate(labs)[keep]
+    return _georeferenced(path, p, None, labels, crs, np.zeros(3), "ellipsoid", max(_median_spacing(p), sample_spacing_m))
+
+
+def first_per_voxel(p: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Sorted indices of the first point in each voxel_m cube of a grid fixed in the coordinates
+    (so that chunks thinned apart agree), keeping the points themselves, not voxel centroids:
+    they stay on the surveyed surface and keep their labels."""
+    keys = np.floor(p / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
 
 
 def _median_spacing(p: np.ndarray) -> float:

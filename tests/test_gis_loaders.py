@@ -11,8 +11,10 @@ import open3d as o3d
 import pytest
 import trimesh
 from pyproj import CRS, Transformer
+from scipy.spatial import cKDTree
 
 from gis.geodesy import geodetic_to_ecef, msl_to_ellipsoid
+from gis import loaders
 from gis.loaders import DEFAULT_BUILDING_HEIGHT_M, LEVEL_HEIGHT_M, load_model
 from gis.model import BUILDING, GROUND, GisFormatError
 from gis.synthetic import box_city_mesh
@@ -90,6 +92,16 @@ def test_obj_and_glb_meshes(tmp_path, city):
     _check_city(load_model(draco, 2.0), mesh, tol_m=np.ptp(mesh.vertices) * 2.0**-14)  # Draco's 14-bit positions
 
 
+def _assert_thinned(model_ecef: np.ndarray, file_ecef: np.ndarray, file_p: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The model holds file points only, exactly one per occupied voxel_m cube of the file's
+    coordinates; returns the index of each model point in the file."""
+    d, idx = cKDTree(file_ecef).query(model_ecef)
+    assert np.max(d) < 2e-3
+    keys = np.floor(file_p / voxel_m).astype(np.int64)
+    assert len(np.unique(keys[idx], axis=0)) == len(idx) == len(np.unique(keys, axis=0))
+    return idx
+
+
 def test_ply_point_cloud_egm96_heights(tmp_path):
     rng = np.random.default_rng(0)
     p = rng.uniform([0, 0, 0], [50, 50, 1.0], (500, 3))
@@ -100,12 +112,13 @@ def test_ply_point_cloud_egm96_heights(tmp_path):
     m = load_model(path)
     lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*(p + OFFSET)[:, :2].T)
     expect = geodetic_to_ecef(lat, lon, msl_to_ellipsoid(lat, lon, (p + OFFSET)[:, 2]))
-    np.testing.assert_allclose(_model_ecef(m), expect, atol=2e-3)  # float32 PLY coordinates
+    _assert_thinned(_model_ecef(m), expect, p.astype(np.float32).astype(float), 1.0)  # the file's float32 coordinates
     assert np.all(np.abs(np.linalg.norm(m.normals_enu, axis=1) - 1) < 1e-9)
 
 
 @pytest.mark.parametrize("ext", ["las", "laz"])
-def test_las_laz_with_crs_and_classification(tmp_path, ext):
+def test_las_laz_with_crs_and_classification(tmp_path, ext, monkeypatch):
+    """Read in chunks and thinned to one point per sampling voxel, labels kept with their points."""
     rng = np.random.default_rng(1)
     p = OFFSET + rng.uniform([0, 0, 0], [80, 80, 20], (2000, 3))
     hdr = laspy.LasHeader(point_format=6, version="1.4")
@@ -117,8 +130,15 @@ def test_las_laz_with_crs_and_classification(tmp_path, ext):
     path = tmp_path / f"cloud.{ext}"
     las.write(path)
     m = load_model(path)
-    np.testing.assert_allclose(_model_ecef(m), _utm_to_ecef(p), atol=2e-3)
-    np.testing.assert_array_equal(m.labels, np.asarray(las.classification))
+    stored = laspy.read(path)
+    p = np.column_stack([stored.x, stored.y, stored.z])  # voxels of the file's mm-quantised coordinates
+    idx = _assert_thinned(_model_ecef(m), _utm_to_ecef(p), p, 1.0)
+    np.testing.assert_array_equal(m.labels, np.asarray(las.classification)[idx])
+    monkeypatch.setattr(loaders, "LAS_CHUNK_POINTS", 300)  # read in 7 chunks: voxels straddling chunks kept once
+    chunked = load_model(path)
+    _assert_thinned(_model_ecef(chunked), _utm_to_ecef(p), p, 1.0)
+    dense = load_model(path, sample_spacing_m=0.1)  # a spacing finer than the cloud keeps every point
+    np.testing.assert_allclose(np.sort(_model_ecef(dense), axis=0), np.sort(_utm_to_ecef(p), axis=0), atol=2e-3)
 
 
 def _cityjson_cube(size=20.0, h=15.0):
