@@ -139,6 +139,12 @@ def test_las_laz_with_crs_and_classification(tmp_path, ext, monkeypatch):
     _assert_thinned(_model_ecef(chunked), _utm_to_ecef(p), p, 1.0)
     dense = load_model(path, sample_spacing_m=0.1)  # a spacing finer than the cloud keeps every point
     np.testing.assert_allclose(np.sort(_model_ecef(dense), axis=0), np.sort(_utm_to_ecef(p), axis=0), atol=2e-3)
+    las.classification[:100] = 7  # low noise, high noise and withheld points are no surface
+    las.classification[100:200] = 18
+    las.withheld = np.arange(len(p)) < 300
+    las.write(path)
+    kept = load_model(path, sample_spacing_m=0.1)
+    np.testing.assert_allclose(np.sort(_model_ecef(kept), axis=0), np.sort(_utm_to_ecef(p[300:]), axis=0), atol=2e-3)
 
 
 def _cityjson_cube(size=20.0, h=15.0):
