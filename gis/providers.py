@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -108,9 +109,9 @@ class HttpTilesProvider:
             r.raise_for_status()
         except requests.RequestException as e:
             if dst.is_file():
-                log.warning("%s: %s; using the copy downloaded before", url, type(e).__name__)
+                log.warning("%s: %s; using the copy downloaded before", _redacted(url), type(e).__name__)
                 return dst, False
-            raise FetchError(f"{url}: {type(e).__name__}: {e}") from None
+            raise FetchError(_redacted(f"{url}: {type(e).__name__}: {e}")) from None
         dst.parent.mkdir(parents=True, exist_ok=True)
         tmp = dst.with_name(f"{dst.name}.{threading.get_ident()}.part")
         tmp.write_bytes(r.content)
@@ -120,7 +121,7 @@ class HttpTilesProvider:
     def _download(self, http: requests.Session, url: str, T_parent: np.ndarray, refine: str, centre: np.ndarray,
                   radius_m: float, depth: int, urls: dict[Path, str], tiles: list[str]) -> Path:
         if depth > 16:
-            raise FetchError(f"{url}: external tilesets nested deeper than 16")
+            raise FetchError(_redacted(f"{url}: external tilesets nested deeper than 16"))
         path, _ = self._get(http, url, urls, refresh=depth == 0)
         try:
             doc = json.loads(path.read_text())
@@ -128,13 +129,19 @@ class HttpTilesProvider:
                                              keep=lambda tile, T: _near(tile.get("boundingVolume", {}), T, centre, radius_m)))
         except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
             path.unlink(missing_ok=True)
-            raise FetchError(f"{url}: not a 3D Tiles tileset ({type(e).__name__}: {e})") from None
+            raise FetchError(_redacted(f"{url}: not a 3D Tiles tileset ({type(e).__name__}: {e})")) from None
         for c in contents:
             if c.is_tileset:
                 self._download(http, _child_url(url, c.uri), c.T, c.refine, centre, radius_m, depth + 1, urls, tiles)
             else:
                 tiles.append(_child_url(url, c.uri))
         return path
+
+
+def _redacted(text: str) -> str:
+    """text with the values of credential-like URL parameters (key, token, access_token) blanked:
+    errors and logs go to the journal, an API key does not."""
+    return re.sub(r"(?i)\b(key|token|access_token)=[^&\s]+", r"\1=…", text)
 
 
 def _child_url(base: str, uri: str) -> str:

@@ -202,7 +202,7 @@ def google_like_server(tmp_path):
             u = urlsplit(self.path)
             q = {k: v[0] for k, v in parse_qs(u.query).items()}
             seen.append((u.path, q))
-            if q.get("key") != "K":
+            if q.get("key") != "SECRET":
                 return self.send_error(403, "API key missing")
             if u.path == "/v1/3dtiles/root.json":
                 body = json.dumps({"asset": {"version": "1.0"}, "geometricError": 1e7, "root": {
@@ -227,7 +227,7 @@ def google_like_server(tmp_path):
 
     def rotate():
         session[0] = session[0] + "x"
-    yield f"http://127.0.0.1:{srv.server_address[1]}/v1/3dtiles/root.json?key=K", seen, rotate
+    yield f"http://127.0.0.1:{srv.server_address[1]}/v1/3dtiles/root.json?key=SECRET", seen, rotate
     srv.shutdown()
 
 
@@ -241,7 +241,7 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
     m = fetch_model([prov], 47.3769, 8.5417, 2_000.0)
     got = {p.rsplit("/", 1)[-1] for p, q in seen}
     assert got == {"root.json", "sub.json", "mid_0.glb", "mid_1.glb"}, got
-    assert all(q.get("key") == "K" for _, q in seen) and all(q.get("session") == "s1" for p, q in seen if "datasets" in p)
+    assert all(q.get("key") == "SECRET" for _, q in seen) and all(q.get("session") == "s1" for p, q in seen if "datasets" in p)
     enu = ORIGIN.ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
     assert np.ptp(enu[:, 2]) == pytest.approx(12.0, abs=0.1)  # Draco decoded, glTF Y is up
     assert np.ptp(enu[:, 0]) == pytest.approx(70.0, abs=0.2) and np.ptp(enu[:, 1]) == pytest.approx(20.0, abs=0.2)
@@ -251,5 +251,8 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
     n = len(seen)
     m2 = fetch_model([prov], 47.3769, 8.5417, 20_000.0)  # now the far branch too
     assert [p.rsplit("/", 1)[-1] for p, _ in seen[n:]] == ["root.json", "far.glb"]  # the rest from the mirror
-    assert seen[-1][1] == {"session": "s1x", "key": "K"}
+    assert seen[-1][1] == {"session": "s1x", "key": "SECRET"}
     assert len(m2) > len(m)
+    with pytest.raises(FetchError, match="403") as e:  # a wrong key: the error names the URL, not the key
+        HttpTilesProvider(url.replace("SECRET", "WRONGKEY"), tmp_path / "dl_bad", timeout_s=5.0).fetch(47.3769, 8.5417, 100.0)
+    assert "WRONGKEY" not in str(e.value) and "root.json?key=…" in str(e.value)
