@@ -536,9 +536,9 @@ def markdown_summary(fig: dict) -> str:
                   f"{_fmt(r['global_error_m']['mean'])} / {_fmt(r['global_error_m']['p99'])} |" for r in fig["ablation"]]
     if fig.get("finetune_map_size_sweep"):
         lines += ["", "## Fine-tuning cost vs GIS map size (gis.bench.size_sweep)", "",
-                  "| area [km²] | model points | median / P90 [ms] | ratio to first |", "|---|---|---|---|"]
-        lines += [f"| {r['area_km2']:g} | {r['n_model_points']} | {r['median_ms']:.1f} / {r['p90_ms']:.1f} | {r['ratio']:.2f} |"
-                  for r in fig["finetune_map_size_sweep"]]
+                  "| area [km²] | model points | median / P90 [ms] | ratio to first | anonymous memory [MB] |", "|---|---|---|---|---|"]
+        lines += [f"| {r['area_km2']:g} | {r['n_model_points']} | {r['median_ms']:.1f} / {r['p90_ms']:.1f} | {r['ratio']:.2f} | "
+                  f"{r['anon_mb']:.0f} |" for r in fig["finetune_map_size_sweep"]]
     if fig["reasons"]:
         lines += ["", "Not applicable / missing:", ""] + [f"- `{k}`: {v}" for k, v in fig["reasons"].items()]
     return "\n".join(lines) + "\n"

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
@@ -27,6 +28,10 @@ from companion.persistence import MapSaver, load_saved, map_path
 from companion.pipeline import PipelineInput, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
+
+if TYPE_CHECKING:
+    from gis.cache import GisCache
+    from gis.model import GisModel
 from mavlink_bridge.types import GnssQuality
 
 log = logging.getLogger("terraslam.service")
@@ -96,11 +101,33 @@ def _restore_georef(cache, site_id: str, localizer) -> int:
     return ev.n
 
 
+def load_gis_model(cfg: AppConfig, cache: GisCache) -> tuple[GisModel, str]:
+    """The configured GIS model, mapped from the GIS cache (gis.cache: paged in only where it is
+    cropped; a model larger than the board's RAM works) and its site id. A file already imported
+    unchanged with the same settings is not parsed again (a LAZ or a tileset takes minutes); else
+    it is loaded, saved and mapped back, so the parsed copy is freed. A cached copy that fails its
+    hash check is imported again."""
+    from gis.cache import CacheCorrupt
+    from gis.loaders import load_model, source_key
+
+    path, spacing, ground = cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m
+    key = source_key(path, spacing, ground)
+    site_id = cache.imported(key)
+    if site_id is not None:
+        try:
+            model = cache.load_model(site_id)
+            log_event(log, "gis_model", f"{path}: unchanged since imported as site {site_id}; mapped from the cache")
+            return model, site_id
+        except CacheCorrupt as e:
+            log_event(log, "gis_cache_corrupt", f"{e}; importing {path} again", level=logging.WARNING)
+    site_id = cache.save_model(load_model(path, spacing, ground), source_key=key)
+    return cache.load_model(site_id), site_id
+
+
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer, open_journal
     from gis.cache import GisCache
-    from gis.loaders import load_model
     from gis.model import GisFormatError
     from mavlink_bridge.bridge import Bridge
 
@@ -108,13 +135,12 @@ def run_service(cfg: AppConfig) -> int:
     if cfg.gis.model is None:
         log.error("gis.model is not set: the service needs a GIS model file (any supported format)")
         return 2
+    cache = GisCache(cfg.gis.cache_dir.expanduser())
     try:
-        model = load_model(cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m)
+        model, site_id = load_gis_model(cfg, cache)
     except (GisFormatError, OSError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
         log.error("cannot load the GIS model (gis.model): %s", e)
         return 2
-    cache = GisCache(cfg.gis.cache_dir.expanduser())
-    site_id = cache.save_model(model)
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
     localizer = build_localizer(cfg, source.camera_model, T_body_cam, model,

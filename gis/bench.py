@@ -4,7 +4,8 @@
   point-to-model distance of the aligned SLAM cloud (TerraSLAM Table 4) and as true error.
 - ``finetune_timing`` / ``size_sweep``: wall time of one fine-tuning registration on the pipeline's
   path (prior-aware, cold and reused crop), and its ratio between a 1 km² and a 100 km² GIS model
-  (the fixed-size crop keeps it flat).
+  (the fixed-size crop keeps it flat), the models mapped from a GIS cache as the service maps
+  them, with the RAM they cost.
 - ``replay_flight``: Globalizer error against truth along a flight, with SLAM stood in for by
   truth in a scaled/rotated frame plus random-walk drift (no images, no real SLAM: it measures
   the alignment + globalization chain only), fine-tuning every N frames, and the integrity
@@ -16,8 +17,13 @@ simulator's exported GIS model and world instead (gis/ must not import companion
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -25,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from gis.align.fine import FineTuner, enu_sim3
 from gis.align.rough import alignment_error_m, rough_align
+from gis.cache import GisCache
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame
 from gis.globalizer import Globalizer
@@ -120,15 +127,32 @@ def finetune_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m:
 
 
 def size_sweep(extents_m: tuple[float, ...] = (1000.0, 10000.0), spacing_m: float = 3.0) -> list[dict]:
-    """finetune_timing on box cities of each extent (same density); ratio to the first."""
+    """finetune_timing on box cities of each extent (same density) as the service meets them:
+    saved to a GIS cache, then mapped from it in a fresh process, whose anonymous memory after the
+    registrations is reported too (``anon_mb``: what the model costs in RAM that the kernel cannot
+    page out); ratio of the times to the first."""
     rows = []
     for e in extents_m:
-        m = box_city_model(e, ORIGIN, seed=0, spacing_m=spacing_m)
-        rows.append({"area_km2": (e / 1000) ** 2, **finetune_timing(m)})
-        del m
+        with tempfile.TemporaryDirectory() as d:
+            GisCache(d).save_model(box_city_model(e, ORIGIN, seed=0, spacing_m=spacing_m), "sweep")
+            out = subprocess.run([sys.executable, "-m", "gis.bench", "--mapped-timing", d], capture_output=True,
+                                 text=True, check=True)
+        rows.append({"area_km2": (e / 1000) ** 2, **json.loads(out.stdout.splitlines()[-1])})
     for r in rows:
         r["ratio"] = r["median_ms"] / rows[0]["median_ms"]
     return rows
+
+
+def _mapped_timing(cache_dir: str) -> dict:
+    """finetune_timing on the model of a cache's site ``sweep`` (memory-mapped), with this process's
+    anonymous resident memory afterwards (Linux /proc; NaN elsewhere)."""
+    r = finetune_timing(GisCache(cache_dir).load_model("sweep"))
+    try:
+        status = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines() if ":" in line)
+        r["anon_mb"] = int(status["RssAnon"].split()[0]) / 1024
+    except (OSError, KeyError, ValueError):
+        r["anon_mb"] = float("nan")
+    return r
 
 
 @dataclass(frozen=True)
@@ -200,7 +224,11 @@ def main() -> None:
     ap.add_argument("--sweep", default="1000,10000", help="box-city extents (m) for the map-size sweep")
     ap.add_argument("--sweep-spacing", type=float, default=3.0, help="sampling (m) of the sweep's models (memory: ~50 B/point)")
     ap.add_argument("--frames", type=int, default=1200, help="frames of the replayed flight")
+    ap.add_argument("--mapped-timing", metavar="CACHE_DIR", help=argparse.SUPPRESS)  # size_sweep's child process
     args = ap.parse_args()
+    if args.mapped_timing:
+        print(json.dumps(_mapped_timing(args.mapped_timing)))
+        return
     model = box_city_model(1000.0, ORIGIN, seed=0, spacing_m=1.0)
     obs = _observe_model(model, noise_m=0.05)
     a = alignment_errors(model, obs, np.array([20.0, -30.0, 0.0]))
@@ -219,8 +247,9 @@ def main() -> None:
               f"registrations {f.n_accepted} accepted / {f.n_rejected} rejected")
     del model
     for r in size_sweep(tuple(float(x) for x in args.sweep.split(",")), args.sweep_spacing):
-        print(f"fine-tune on a {r['area_km2']:.0f} km² model ({r['n_model_points']} pts): median {r['median_ms']:.1f} ms "
-              f"(cold crop {r['cold_median_ms']:.1f}, reused {r['warm_median_ms']:.1f}), P90 {r['p90_ms']:.1f} ms, ratio {r['ratio']:.2f}")
+        print(f"fine-tune on a {r['area_km2']:.0f} km² model ({r['n_model_points']} pts) mapped from the GIS cache: median "
+              f"{r['median_ms']:.1f} ms (cold crop {r['cold_median_ms']:.1f}, reused {r['warm_median_ms']:.1f}), P90 {r['p90_ms']:.1f} ms, "
+              f"ratio {r['ratio']:.2f}; anonymous memory {r['anon_mb']:.0f} MB")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """GIS cache (TerraSLAM §6: Pre-fetch, SaveCache): models + per-site transforms in SQLite.
 
-Layout under ``root``: ``index.sqlite`` (tables ``models``, ``transforms`` and ``georef``: the
-evidence on a model's georeference gathered against GNSS over the flights so far) and
-``models/<sha256>.npz`` (the GisModel arrays). Every model file and transform row carries a
+Layout under ``root``: ``index.sqlite`` (tables ``models``, ``transforms``, ``georef``: the
+evidence on a model's georeference gathered against GNSS over the flights so far, and ``imports``:
+which site a model file was imported as, so an unchanged file is mapped, not parsed again) and
+``models/<sha256>.npz`` (the GisModel arrays, stored cell by cell and memory-mapped on load). Every model file and transform row carries a
 SHA-256 content hash that is checked on load; a mismatch raises CacheCorrupt naming the entry.
 A site covers the disc of ``radius_m`` around its model's ENU origin; ``prefetch`` returns the
 nearest site covering a position, with its T_rough, latest T_fine and georeference evidence.
@@ -12,7 +13,9 @@ from __future__ import annotations
 import hashlib
 import json
 import sqlite3
+import struct
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +36,7 @@ CREATE TABLE IF NOT EXISTS transforms (
     PRIMARY KEY (site_id, kind));
 CREATE TABLE IF NOT EXISTS georef (
     site_id TEXT PRIMARY KEY, evidence_json TEXT, sha256 TEXT, saved_unix_s REAL);
+CREATE TABLE IF NOT EXISTS imports (source_key TEXT PRIMARY KEY, site_id TEXT, saved_unix_s REAL);
 """
 
 
@@ -68,8 +72,11 @@ class GisCache:
         return sqlite3.connect(self.db_path, timeout=10.0)
 
     # --- SaveCache ---------------------------------------------------------------------------
-    def save_model(self, model: GisModel, site_id: str | None = None) -> str:
-        """Store a model (content-addressed .npz) and index it; returns its site id."""
+    def save_model(self, model: GisModel, site_id: str | None = None, source_key: str | None = None) -> str:
+        """Store a model (content-addressed .npz, uncompressed, its points stored cell by cell of
+        the crop index so that ``load_model`` can map it instead of reading it) and index it;
+        returns its site id."""
+        model = model.sorted_by_cell
         tmp = self.root / "models" / f".tmp-{time.time_ns()}.npz"
         np.savez(
             tmp, points_enu=model.points_enu, normals_enu=model.normals_enu, labels=model.labels,
@@ -86,7 +93,16 @@ class GisCache:
                 (site_id, model.origin.lat0_deg, model.origin.lon0_deg, model.origin.h0_ellipsoid_m, radius,
                  final.name, digest, model.source_crs, str(model.source_path), len(model), time.time()),
             )
+            if source_key is not None:
+                db.execute("INSERT OR REPLACE INTO imports VALUES (?,?,?)", (source_key, site_id, time.time()))
         return site_id
+
+    def imported(self, source_key: str) -> str | None:
+        """The site whose model was saved from the source ``source_key`` names
+        (``gis.loaders.source_key``: the same file, unchanged, the same settings), or None."""
+        with self._db() as db:
+            r = db.execute("SELECT site_id FROM imports WHERE source_key=?", (source_key,)).fetchone()
+        return r[0] if r is not None and self._row(r[0]) is not None else None
 
     def save_transform(self, site_id: str, kind: str, T_ecef_slam: Sim3, meta: dict | None = None) -> None:
         """Store T_rough or (replacing the previous) the latest T_fine of a site."""
@@ -135,10 +151,9 @@ class GisCache:
             raise CacheCorrupt(f"site {site_id!r}: model file {path} is missing")
         if _sha256_file(path) != row["sha256"]:
             raise CacheCorrupt(f"site {site_id!r}: model file {path} does not match its SHA-256 (corrupted)")
-        with np.load(path) as z:
-            o = z["origin"]
-            return GisModel(z["points_enu"], z["normals_enu"], z["labels"], LocalFrame(*map(float, o)),
-                            row["source_crs"], Path(row["source_path"]))
+        z = _npz_mapped(path)
+        return GisModel(z["points_enu"], z["normals_enu"], z["labels"], LocalFrame(*map(float, z["origin"])),
+                        row["source_crs"], Path(row["source_path"]))
 
     def load_transform(self, site_id: str, kind: str) -> tuple[Sim3, dict] | None:
         with self._db() as db:
@@ -179,6 +194,35 @@ class GisCache:
             self.root / "models" / r["file"], r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
             rough[0] if rough else None, fine[0] if fine else None, meta, self.load_georef(r["site_id"]),
         )
+
+
+def _npz_mapped(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an .npz written by ``np.savez`` (ZIP members stored, not deflated), each
+    memory-mapped read-only where it lies in the file, so that a model larger than the board's RAM
+    is paged in only where it is cropped. By hand because NumPy maps .npy files but not the
+    members of an .npz (its ``mmap_mode`` is ignored there); a deflated member is read instead.
+    A member's data starts after its 30-byte ZIP local header, name and extra field (APPNOTE
+    §4.3.7), then the .npy header (NumPy format 1.0 or 2.0)."""
+    out: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            name = info.filename.removesuffix(".npy")
+            if info.compress_type != zipfile.ZIP_STORED:
+                out[name] = np.load(zf.open(info))
+                continue
+            f.seek(info.header_offset)
+            local = f.read(30)
+            if local[:4] != b"PK\x03\x04":
+                raise CacheCorrupt(f"{path}: member {info.filename} has no ZIP local header")
+            name_len, extra_len = struct.unpack("<HH", local[26:30])
+            f.seek(info.header_offset + 30 + name_len + extra_len)
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            if dtype.hasobject or fortran:
+                raise CacheCorrupt(f"{path}: member {info.filename} is not a plain C-ordered array")
+            out[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape) if np.prod(shape) else np.zeros(shape, dtype)
+    return out
 
 
 def _sha256_file(path: Path) -> str:

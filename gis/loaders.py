@@ -30,6 +30,7 @@ Formats (dispatched on content, then extension):
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import logging
@@ -69,10 +70,37 @@ _CITYJSON_LABELS = {
 }
 
 
+#: bump when a loader's output for the same file changes, so that imports cached by an older one
+#: are not reused (``source_key``); 2: LAS thinning, 3D Tiles level of detail, cell-sorted points
+LOADER_VERSION = 2
+
+
 def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:
     """Load a GIS model file (or a 3D Tiles directory) into a GisModel; GisFormatError on bad input.
-    ``ground_h_msl_m``: the site's ground height above MSL, for building footprints that carry none."""
-    path = Path(path).expanduser()
+    ``ground_h_msl_m``: the site's ground height above MSL, for building footprints that carry none.
+    The points come stored cell by cell of the crop index (``GisModel.sorted_by_cell``), as the
+    GIS cache keeps and maps them: a model read from its file and one mapped from the cache are
+    the same arrays, so a flight's registrations replay bit for bit from either."""
+    return _load_model(Path(path).expanduser(), sample_spacing_m, ground_h_msl_m).sorted_by_cell
+
+
+def source_key(path: Path | str, sample_spacing_m: float, ground_h_msl_m: float | None) -> str:
+    """A SHA-256 naming what ``load_model`` would make of path with these settings: the file's (or,
+    for a 3D Tiles directory, every file's) size and modification time, a mesh's georeference
+    sidecar, the settings and LOADER_VERSION. Equal keys: the cached import can stand in for
+    loading the file again (gis.cache ``imported``)."""
+    path = Path(path).expanduser().resolve()
+    files = sorted(f for f in path.rglob("*") if f.is_file()) if path.is_dir() else \
+        [f for f in (path, path.with_name(path.name + ".georef.json")) if f.is_file()]
+    if not files:
+        raise GisFormatError(path, "no such file")
+    stats = [[str(f.relative_to(path.parent)), f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+    doc = {"path": str(path), "files": stats, "sample_spacing_m": sample_spacing_m, "ground_h_msl_m": ground_h_msl_m,
+           "loader_version": LOADER_VERSION}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def _load_model(path: Path, sample_spacing_m: float, ground_h_msl_m: float | None) -> GisModel:
     if path.is_dir():
         if (path / "tileset.json").is_file():
             return load_3dtiles(path / "tileset.json", sample_spacing_m)

@@ -4,9 +4,10 @@ Points and normals are in a local ENU frame (``origin``: geodetic WGS-84, ellips
 Labels are ASPRS LAS classification codes (1 unclassified, 2 ground, 5 high vegetation,
 6 building, 11 road surface).
 
-Cropping uses a grid index over the horizontal plane (points sorted by cell once, then a
-``searchsorted`` per cell row), so the cost of a crop depends on the crop size only, not on the
-size of the model (digital-twin paper §III-E: registration on a fixed-size crop).
+Cropping uses a grid index over the horizontal plane (cell offsets over the points sorted by
+cell, one slice per cell row), so the cost of a crop depends on the crop size only, not on the
+size of the model (digital-twin paper §III-E: registration on a fixed-size crop); a model stored
+cell by cell (the GIS cache's) needs no per-point index and can stay memory-mapped.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ UNCLASSIFIED, GROUND, HIGH_VEGETATION, BUILDING, ROAD = 1, 2, 5, 6, 11
 
 #: Grid cell size (m) of the crop index; a 150 m crop touches about 16 cells.
 INDEX_CELL_M = 50.0
+_CHUNK = 1 << 20  # rows per step of whole-model passes (validation, indexing)
 
 
 class GisFormatError(ValueError):
@@ -53,7 +55,7 @@ class GisModel:
             raise ValueError(f"GisModel arrays disagree: points {p.shape}, normals {n.shape}, labels {lab.shape}")
         if len(p) == 0:
             raise GisFormatError(self.source_path, "model holds no points")
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(n))):
+        if not (_all_finite(p) and _all_finite(n)):
             raise GisFormatError(self.source_path, "model has non-finite coordinates or normals")
         object.__setattr__(self, "points_enu", p)
         object.__setattr__(self, "normals_enu", n)
@@ -68,14 +70,44 @@ class GisModel:
         return self.points_enu.min(axis=0), self.points_enu.max(axis=0)
 
     @functools.cached_property
-    def _grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """(order, sorted cell keys, cell-min, number of columns) of the horizontal grid index."""
-        lo = np.floor(self.points_enu[:, :2].min(axis=0) / INDEX_CELL_M).astype(np.int64)
-        ij = np.floor(self.points_enu[:, :2] / INDEX_CELL_M).astype(np.int64) - lo
-        ncol = int(ij[:, 0].max()) + 1
-        keys = ij[:, 1] * ncol + ij[:, 0]
-        order = np.argsort(keys, kind="stable")
-        return order, keys[order], lo, ncol
+    def _grid(self) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, int]:
+        """(order, cell offsets, cell-min, number of columns) of the horizontal grid index: the
+        points of cell k are ``order[offsets[k]:offsets[k + 1]]`` (CSR), order None where the points
+        are stored cell by cell already (``sorted_by_cell``, as the GIS cache keeps them): then the
+        index holds nothing per point, and a memory-mapped model is read only where it is cropped.
+        Built in chunks, so indexing a model never needs a copy of it."""
+        lo = np.full(2, np.iinfo(np.int64).max)
+        hi = np.full(2, np.iinfo(np.int64).min)
+        for a in range(0, len(self), _CHUNK):
+            ij = self._cells(a)
+            lo, hi = np.minimum(lo, ij.min(axis=0)), np.maximum(hi, ij.max(axis=0))
+        ncol, nrow = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
+        counts = np.zeros(ncol * nrow, np.int64)
+        in_order, last = True, -1
+        for a in range(0, len(self), _CHUNK):
+            ij = self._cells(a) - lo
+            keys = ij[:, 1] * ncol + ij[:, 0]
+            counts += np.bincount(keys, minlength=len(counts))
+            in_order = in_order and keys[0] >= last and bool(np.all(np.diff(keys) >= 0))
+            last = keys[-1]
+        order = None
+        if not in_order:
+            ij = np.floor(self.points_enu[:, :2] / INDEX_CELL_M).astype(np.int64) - lo
+            order = np.argsort(ij[:, 1] * ncol + ij[:, 0], kind="stable")
+        return order, np.concatenate([[0], np.cumsum(counts)]), lo, ncol
+
+    def _cells(self, start: int) -> np.ndarray:
+        return np.floor(self.points_enu[start:start + _CHUNK, :2] / INDEX_CELL_M).astype(np.int64)
+
+    @property
+    def sorted_by_cell(self) -> "GisModel":
+        """The same model with its points stored cell by cell (row-major over the grid index),
+        which makes its index free of per-point arrays; self if they are already."""
+        order = self._grid[0]
+        if order is None:
+            return self
+        return GisModel(self.points_enu[order], self.normals_enu[order], self.labels[order], self.origin,
+                        self.source_crs, self.source_path)
 
     def crop(self, center_enu: np.ndarray, size_m: float) -> np.ndarray:
         """Indices of points inside the horizontal square of side size_m centred at center_enu (any height)."""
@@ -84,19 +116,17 @@ class GisModel:
 
     def crop_box(self, lo_en: np.ndarray, hi_en: np.ndarray) -> np.ndarray:
         """Indices of points whose east/north lie in [lo_en, hi_en] (m, inclusive; any height)."""
-        order, keys, lo, ncol = self._grid
+        order, offsets, lo, ncol = self._grid
+        nrow = (len(offsets) - 1) // ncol
         lo_en, hi_en = np.asarray(lo_en, float)[:2], np.asarray(hi_en, float)[:2]
         i0, j0 = (np.floor(lo_en / INDEX_CELL_M).astype(np.int64) - lo)
         i1, j1 = (np.floor(hi_en / INDEX_CELL_M).astype(np.int64) - lo)
         i0, i1 = max(i0, 0), min(i1, ncol - 1)
-        if i1 < i0:
+        rows = np.arange(max(j0, 0), min(j1, nrow - 1) + 1)
+        if i1 < i0 or len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
-        rows = np.arange(max(j0, 0), j1 + 1)
-        starts = np.searchsorted(keys, rows * ncol + i0, side="left")
-        ends = np.searchsorted(keys, rows * ncol + i1, side="right")
-        if len(rows) == 0:
-            return np.zeros(0, dtype=np.int64)
-        idx = order[np.concatenate([np.arange(s, e) for s, e in zip(starts, ends)])]
+        pos = np.concatenate([np.arange(offsets[r * ncol + i0], offsets[r * ncol + i1 + 1]) for r in rows])
+        idx = pos if order is None else order[pos]
         p = self.points_enu[idx, :2]
         inside = np.all((p >= lo_en) & (p <= hi_en), axis=1)
         return idx[inside]
@@ -140,6 +170,11 @@ def merge_models(models: list[GisModel], source_path: Path | str) -> GisModel:
         np.concatenate(pts), np.concatenate(nrm), np.concatenate([m.labels for m in models]),
         origin, ";".join(crs), Path(source_path),
     )
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """np.all(np.isfinite(a)) a chunk of rows at a time (no N-sized temporary for a large model)."""
+    return all(bool(np.isfinite(a[i:i + _CHUNK]).all()) for i in range(0, len(a), _CHUNK))
 
 
 def _unit(v: np.ndarray, path: Path | str) -> np.ndarray:

@@ -38,9 +38,18 @@ def test_cache_round_trip_prefetch_and_hash_checks(tmp_path, model):
     # a fresh cache object (new process) sees the same content
     cache2 = GisCache(tmp_path / "cache")
     m2 = cache2.load_model(site)
-    np.testing.assert_array_equal(m2.points_enu, model.points_enu)
-    np.testing.assert_array_equal(m2.labels, model.labels)
+    stored = model.sorted_by_cell  # the cache keeps the points cell by cell of the crop index
+    assert stored is not model and sorted(map(tuple, stored.points_enu)) == sorted(map(tuple, model.points_enu))
+    np.testing.assert_array_equal(m2.points_enu, stored.points_enu)
+    np.testing.assert_array_equal(m2.normals_enu, stored.normals_enu)
+    np.testing.assert_array_equal(m2.labels, stored.labels)
     assert m2.origin == model.origin
+    # mapped from the file, not read into memory; its index holds no per-point order
+    assert isinstance(m2.points_enu.base, np.memmap) and not m2.points_enu.flags.writeable
+    assert m2._grid[0] is None
+    c = np.array([30.0, -40.0])
+    np.testing.assert_array_equal(np.sort(m2.points_enu[m2.crop(c, 150.0)], axis=0),
+                                  np.sort(model.points_enu[model.crop(c, 150.0)], axis=0))
     e = cache2.prefetch(*ORIGIN.enu_to_geodetic(np.array([30.0, -40.0, 0]))[:2])
     assert e is not None and e.site_id == "zurich"
     np.testing.assert_allclose(e.T_rough.matrix(), T_rough.matrix(), atol=1e-9)
@@ -256,3 +265,59 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
     with pytest.raises(FetchError, match="403") as e:  # a wrong key: the error names the URL, not the key
         HttpTilesProvider(url.replace("SECRET", "WRONGKEY"), tmp_path / "dl_bad", timeout_s=5.0).fetch(47.3769, 8.5417, 100.0)
     assert "WRONGKEY" not in str(e.value) and "root.json?key=…" in str(e.value)
+
+
+def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_one(tmp_path, monkeypatch, caplog):
+    """`terraslam run` loads gis.model through the cache: the first start parses the file and maps
+    the saved copy back; a restart with the file unchanged maps it without parsing; a changed file
+    or a cached copy that fails its hash is imported again."""
+    import os
+
+    from companion.config import AppConfig
+    from companion.service import load_gis_model
+    from gis import loaders
+    from gis.config import GisConfig
+    from gis.synthetic import box_city_mesh
+
+    path = tmp_path / "city.ply"
+    mesh, _ = box_city_mesh(120.0, seed=3)
+    mesh.export(path)
+    path.with_name("city.ply.georef.json").write_text(json.dumps({"crs": "EPSG:32632", "offset_m": [465000, 5250000, 400]}))
+    cfg = AppConfig(gis=GisConfig(model=path, cache_dir=tmp_path / "cache", sample_spacing_m=2.0))
+    cache = GisCache(cfg.gis.cache_dir)
+    first, site = load_gis_model(cfg, cache)
+    assert isinstance(first.points_enu.base, np.memmap)
+    parsed = loaders.load_model(path, 2.0)
+    np.testing.assert_array_equal(first.points_enu, parsed.points_enu)  # the file's model, cell-sorted both ways
+
+    def no_parsing(*a, **k):
+        raise AssertionError("an unchanged, imported file was parsed again")
+    monkeypatch.setattr(loaders, "load_model", no_parsing)
+    again, site2 = load_gis_model(cfg, cache)
+    assert site2 == site and isinstance(again.points_enu.base, np.memmap)
+    np.testing.assert_array_equal(again.points_enu, first.points_enu)
+    monkeypatch.undo()
+
+    mesh2, _ = box_city_mesh(120.0, seed=4)  # the file changes: imported again
+    mesh2.export(path)
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    changed, site3 = load_gis_model(cfg, cache)
+    assert site3 != site and len(changed) != len(first)
+    f = cache.root / "models" / cache._row(site3)["file"]  # its cached copy corrupted: imported again, with a warning
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f.write_bytes(bytes(data))
+    with caplog.at_level("WARNING"):
+        fixed, _ = load_gis_model(cfg, cache)
+    assert "SHA-256" in caplog.text and "importing" in caplog.text
+    np.testing.assert_array_equal(fixed.points_enu, changed.points_enu)
+
+
+def test_size_sweep_maps_each_model_from_a_cache_in_a_fresh_process():
+    """gis.bench.size_sweep as `terraslam bench --sweep` runs it: each box city saved to a GIS cache
+    and fine-tuned on, mapped, in a child process that reports its anonymous memory."""
+    from gis.bench import size_sweep
+
+    rows = size_sweep((500.0, 700.0), spacing_m=4.0)
+    assert rows[0]["ratio"] == 1.0 and rows[1]["n_model_points"] > rows[0]["n_model_points"] > 1000
+    assert all(np.isfinite(r["median_ms"]) and 10.0 < r["anon_mb"] < 4000.0 for r in rows)
