@@ -43,16 +43,18 @@ def gis_import(
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:
-    """Load a GIS model file and store it in the cache."""
-    from gis.loaders import load_model
+    """Load a GIS model file and store it in the cache (a service whose gis.model is this file, with
+    the same settings, then maps it without parsing it again)."""
+    from gis.loaders import load_model, source_key
     from gis.model import GisFormatError
 
     cfg = _gis_config(config)
+    ground = cfg.footprint_ground_h_msl_m if ground_h_msl_m is None else ground_h_msl_m
     try:
-        model = load_model(path, cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m if ground_h_msl_m is None else ground_h_msl_m)
+        model = load_model(path, cfg.sample_spacing_m, ground)
     except GisFormatError as e:
         fail(str(e))
-    site_id = _cache(config, cache_dir).save_model(model, site)
+    site_id = _cache(config, cache_dir).save_model(model, site, source_key=source_key(path, cfg.sample_spacing_m, ground))
     o = model.origin
     typer.echo(f"imported {path} as site {site_id}: {len(model)} points, origin {o.lat0_deg:.6f}, {o.lon0_deg:.6f}, "
                f"h {o.h0_ellipsoid_m:.1f} m (ellipsoid), CRS {model.source_crs}")

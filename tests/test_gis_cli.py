@@ -34,11 +34,16 @@ def test_gis_import_ls_fetch(tmp_path):
     r = _run("gis", "import", str(ply), "--site", "demo", "--cache-dir", str(cache))
     assert r.returncode == 0, r.stderr
     assert "site demo" in r.stdout and "EPSG:32632" in r.stdout
+    from gis.cache import GisCache
+    from gis.config import GisConfig
+    from gis.loaders import source_key
+    defaults = GisConfig()  # a service with this file as gis.model maps the import, not parsing the file again
+    assert GisCache(cache).imported(source_key(ply, defaults.sample_spacing_m, defaults.footprint_ground_h_msl_m)) == "demo"
+    assert GisCache(cache).imported(source_key(ply, 2 * defaults.sample_spacing_m, None)) is None
     r = _run("gis", "ls", "--cache-dir", str(cache))
     assert r.returncode == 0 and "demo" in r.stdout
     # earlier flights' evidence on the model's georeference (gis.align.georef) shows in the listing
     from gis.align.georef import GeorefCheck
-    from gis.cache import GisCache
 
     chk = GeorefCheck(0.25)
     for k, d in enumerate([(2.4, 0.1, 0.0), (2.6, -0.2, 0.1), (2.5, 0.2, -0.1), (2.5, 0.0, 0.0)]):
