@@ -34,6 +34,7 @@ import hashlib
 import io
 import json
 import logging
+import os
 import struct
 import warnings
 from dataclasses import dataclass
@@ -175,6 +176,15 @@ def crs_to_ecef(p: np.ndarray, crs: CRS, vertical: str = "ellipsoid") -> np.ndar
     if not np.all(np.isfinite(ecef)):
         raise ValueError(f"{int((~np.isfinite(ecef)).any(axis=1).sum())} points fall outside the CRS's area")
     return ecef
+
+
+#: the system's PROJ grids (Debian's proj-data, which the Makefile installs: the EGM96 geoid and
+#: others) beside the few in pyproj's wheel, so that a CRS with EGM96 heights (e.g. EPSG:32632+5773,
+#: as photogrammetry tools export) transforms exactly instead of being refused
+SYSTEM_PROJ_DIRS = ("/usr/share/proj", "/usr/local/share/proj")
+for _d in SYSTEM_PROJ_DIRS:
+    if Path(_d).is_dir() and _d not in pyproj_datadir.get_data_dir().split(os.pathsep):
+        pyproj_datadir.append_data_dir(_d)
 
 
 def _transformer(wkt: str) -> Transformer:

@@ -208,6 +208,30 @@ def test_cityjson_seq_features_with_their_own_vertices(tmp_path):
         load_model(path)
 
 
+def test_las_in_a_compound_crs_with_egm96_heights(tmp_path):
+    """UTM 32N + EGM96 height (EPSG:32632+5773), as photogrammetry tools export clouds: heights are
+    carried onto the ellipsoid by the geoid (the system's PROJ grid, Debian proj-data), the same N
+    as gis.geodesy's; where no EGM96 grid is installed, the file is refused naming it."""
+    from pyproj.transformer import TransformerGroup
+    rng = np.random.default_rng(2)
+    p = OFFSET + rng.uniform([0, 0, 0], [30, 30, 5], (300, 3))
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.add_crs(CRS.from_user_input("EPSG:32632+5773"))
+    hdr.offsets, hdr.scales = OFFSET, [0.001] * 3
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = p.T
+    path = tmp_path / "msl.las"
+    las.write(path)
+    if TransformerGroup("EPSG:32632+5773", "EPSG:4979", allow_ballpark=False).best_available:
+        m = load_model(path, sample_spacing_m=0.01)
+        lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*p[:, :2].T)
+        expect = geodetic_to_ecef(lat, lon, msl_to_ellipsoid(lat, lon, p[:, 2]))  # N ≈ 47 m here
+        np.testing.assert_allclose(np.sort(_model_ecef(m), axis=0), np.sort(expect, axis=0), atol=0.02)
+    else:
+        with pytest.raises(GisFormatError, match="egm96"):
+            load_model(path)
+
+
 def test_a_vertical_datum_without_its_grid_is_refused_not_guessed(tmp_path):
     """The Dutch 3D BAG's CRS, RD New + NAP height (EPSG:7415): NAP needs the nlgeo2018 geoid grid.
     Without it PROJ's ballpark fallback took NAP heights as ellipsoidal ones (a model ~43 m too
