@@ -159,6 +159,67 @@ def _cityjson_cube(size=20.0, h=15.0):
     }
 
 
+def _write_dsm(path, crs="EPSG:32632", vertical="ellipsoid", res_m=0.5):
+    """A 120 × 100 m digital surface model (rasterio, float32 GeoTIFF) at OFFSET's corner: ground at
+    400 m, a 30 × 20 m building 12 m tall, a 10 × 10 m nodata hole; sidecar with the heights' datum."""
+    import rasterio
+    from rasterio.transform import from_origin
+    h, w = int(100 / res_m), int(120 / res_m)
+    yy, xx = np.mgrid[0:h, 0:w]
+    e, n = (xx + 0.5) * res_m, 100.0 - (yy + 0.5) * res_m  # pixel centres, metres east / north of the corner
+    z = np.where((e > 40) & (e < 70) & (n > 40) & (n < 60), 412.0, 400.0).astype(np.float32)
+    z[(e > 100) & (n > 80)] = -9999.0
+    with rasterio.open(path, "w", driver="GTiff", height=h, width=w, count=1, dtype="float32", crs=crs, nodata=-9999.0,
+                       transform=from_origin(OFFSET[0], OFFSET[1] + 100.0, res_m, res_m)) as ds:
+        ds.write(z, 1)
+    if vertical:
+        path.with_name(path.name + ".georef.json").write_text(json.dumps({"vertical": vertical}))
+    return path
+
+
+def test_geotiff_surface_model_roofs_walls_and_holes(tmp_path):
+    """A DSM loads as the surface it describes: ground and roof at their heights, walls where the
+    height jumps (normals level), nothing in the nodata hole, about one point per spacing² of
+    ground; a 2D CRS without the heights' datum is refused, naming the sidecar."""
+    m = load_model(_write_dsm(tmp_path / "dsm.tif"), sample_spacing_m=1.0)
+    x, y, z = Transformer.from_crs("EPSG:4978", UTM, always_xy=True).transform(*_model_ecef(m).T)
+    q = np.stack([x, y, z], 1) - OFFSET
+    assert np.all(q[:, 2] > -0.01) and np.all(q[:, 2] < 12.01)
+    roof = q[:, 2] > 11.99
+    assert np.all((q[roof, 0] > 39) & (q[roof, 0] < 71) & (q[roof, 1] > 39) & (q[roof, 1] < 61))
+    wall = (q[:, 2] > 0.5) & (q[:, 2] < 11.5)
+    up = np.abs(m.normals_enu[:, 2])
+    assert wall.sum() > 100 and np.median(up[wall]) < 0.2 and np.median(up[~wall]) > 0.99
+    assert np.median(m.normals_enu[~wall, 2]) > 0  # roofs and ground face up
+    assert not np.any((q[:, 0] > 101) & (q[:, 1] > 81))  # the hole
+    flat = np.sum(~wall)
+    assert 0.85 * (120 * 100 - 100) < flat < 1.15 * (120 * 100 - 100)
+    bare = _write_dsm(tmp_path / "bare.tif", vertical=None)
+    with pytest.raises(GisFormatError, match="bare.tif.georef.json"):
+        load_model(bare)
+
+
+def test_geotiff_in_geographic_degrees_is_sampled_in_metres(tmp_path):
+    """SRTM / Copernicus DEMs come in lon/lat degrees: the surface is meshed in ECEF, so it is sampled
+    per square metre, not per square degree, and lands where the same DSM in UTM does."""
+    import rasterio
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+    src = _write_dsm(tmp_path / "utm.tif", res_m=1.0)
+    with rasterio.open(src) as s:
+        T, w, h = calculate_default_transform(s.crs, "EPSG:4326", s.width, s.height, *s.bounds)
+        z = np.full((h, w), -9999.0, np.float32)
+        reproject(rasterio.band(s, 1), z, dst_transform=T, dst_crs="EPSG:4326", resampling=Resampling.nearest, dst_nodata=-9999.0)
+        with rasterio.open(tmp_path / "ll.tif", "w", driver="GTiff", height=h, width=w, count=1, dtype="float32",
+                           crs="EPSG:4326", transform=T, nodata=-9999.0) as d:
+            d.write(z, 1)
+    (tmp_path / "ll.tif.georef.json").write_text(json.dumps({"vertical": "ellipsoid"}))
+    a, b = load_model(src, 1.0), load_model(tmp_path / "ll.tif", 1.0)
+    assert 0.8 < len(b) / len(a) < 1.25
+    pa, pb = _model_ecef(a), _model_ecef(b)
+    assert np.linalg.norm(pa.mean(axis=0) - pb.mean(axis=0)) < 1.5
+    assert np.percentile(cKDTree(pa).query(pb)[0], 90) < 1.5
+
+
 def test_cityjson_geometry_instances_and_point_geometries(tmp_path):
     """A tree as a GeometryInstance (a 2×4×6 m box template, turned 90° about up, on a reference
     vertex 50 m east; template vertices not scaled by ``transform``) lands where the instance puts
@@ -485,6 +546,7 @@ def test_3dtiles_uri_and_extension_errors_name_the_problem(tmp_path):
     ("x.xyz", b"1 2 3\n", "unsupported"),
     ("x.osm.pbf", b"\x00\x00\x00\x0d\x0a\x09OSMHeader", "not a readable OSM file"),
     ("lone.b3dm", b"b3dm" + b"\x00" * 40, "tileset"),
+    ("bad.tif", b"II*\x00" + b"\x07" * 60, "cannot read GeoTIFF"),
 ])
 def test_corrupt_or_unsupported_files_fail_clearly(tmp_path, name, content, problem):
     path = tmp_path / name
