@@ -281,7 +281,7 @@ def open_journal(folder: Path, model_file: Path, cfg: AppConfig, origin: LocalFr
     """A registration journal in ``folder`` (gis.align.journal) with what a replay needs to load the
     same model (``model_file`` as ``cfg.gis`` loads it) and run the same alignment settings."""
     write_meta(folder, model_file, cfg.gis.sample_spacing_m, cfg.alignment.model_dump(mode="json"),
-               (origin.lat0_deg, origin.lon0_deg, origin.h0_ellipsoid_m), cfg.gis.footprint_ground_h_msl_m)
+               (origin.lat0_deg, origin.lon0_deg, origin.h0_ellipsoid_m), cfg.gis.footprint_ground)
     return Journal(folder)
 
 
@@ -524,7 +524,7 @@ def _load_first_model(paths: Iterable[Path], cfg: AppConfig) -> GisModel:
     errors = []
     for p in paths:
         try:
-            return load_model(p, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m)
+            return load_model(p, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground)
         except Exception as e:  # try the next listed format; report all if none loads
             errors.append(f"{p}: {e}")
     raise ValueError("no GIS model could be loaded:\n  " + "\n  ".join(errors))

@@ -237,7 +237,7 @@ def bench_dataset(cfg: AppConfig, dataset_dir: Path, n_frames: int | None = None
     ds = read_dataset(dataset_dir)
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir}: site.yaml lists no GIS model file (gis)")
-    model = load_model(ds.gis_files[0], cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m)
+    model = load_model(ds.gis_files[0], cfg.gis.sample_spacing_m, cfg.gis.footprint_ground)
     n = ds.n_frames if n_frames is None else min(ds.n_frames, n_frames)
     sampler = ResourceSampler().start()
     t0 = time.perf_counter()

@@ -39,6 +39,7 @@ def _cache(config: Optional[Path], cache_dir: Optional[Path]):
 def gis_import(
     path: Path = typer.Argument(..., help="model file (PLY/OBJ/GLB + .georef.json, LAS/LAZ, CityJSON, GeoJSON, OSM .osm.pbf) or 3D Tiles directory"),
     ground_h_msl_m: Optional[float] = typer.Option(None, "--ground-h-msl-m", help="ground height above MSL for footprints without heights (OSM); default gis.footprint_ground_h_msl_m"),
+    ground_dem: Optional[Path] = typer.Option(None, "--ground-dem", help="terrain model (GeoTIFF DTM) under footprints without heights, instead of --ground-h-msl-m; default gis.footprint_ground_dem"),
     site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)"),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
@@ -49,7 +50,7 @@ def gis_import(
     from gis.model import GisFormatError
 
     cfg = _gis_config(config)
-    ground = cfg.footprint_ground_h_msl_m if ground_h_msl_m is None else ground_h_msl_m
+    ground = cfg.footprint_ground if ground_h_msl_m is None and ground_dem is None else ground_dem or ground_h_msl_m
     try:
         model = load_model(path, cfg.sample_spacing_m, ground)
     except GisFormatError as e:
@@ -116,7 +117,7 @@ def gis_fetch(
     cache = _cache(config, cache_dir)
     providers = [
         HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m)
-        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m)
+        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground)
         for s in source
     ]
     try:
@@ -181,7 +182,7 @@ def align_offline(
     for f in ds.gis_files:
         try:
             console.print(f"loading GIS model {f}")
-            model = load_model(f, cfg.sample_spacing_m, cfg.footprint_ground_h_msl_m)
+            model = load_model(f, cfg.sample_spacing_m, cfg.footprint_ground)
             break
         except GisFormatError as e:
             errors.append(str(e))

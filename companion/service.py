@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from companion.config import AppConfig
@@ -66,7 +67,7 @@ def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
               f"σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m)", map_id=h.map_id, sigma_m=a.sigma_m)
 
 
-def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str):
+def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str, model_file: Path):
     """The flight recorder when ``recording.enabled`` (companion/recorder.py); None, logged, when its
     folder cannot be made: a recorder problem never stops the service."""
     if not cfg.recording.enabled:
@@ -76,7 +77,7 @@ def _open_recorder(cfg: AppConfig, camera, T_body_cam, model, site_id: str):
     root = cfg.recording.dir or cfg.supervisor.state_dir / "recordings"
     try:
         return open_recording(root, cfg.recording, camera, T_body_cam, cfg.camera.fps, model.origin,
-                              [cfg.gis.model.expanduser()], site_id, cfg.mavlink.gnss_antenna_m)
+                              [model_file], site_id, cfg.mavlink.gnss_antenna_m)
     except OSError as e:
         log_event(log, "recording_unavailable", f"flight recorder off for this run: {e}", level=logging.ERROR)
         return None
@@ -101,27 +102,37 @@ def _restore_georef(cache, site_id: str, localizer) -> int:
     return ev.n
 
 
-def load_gis_model(cfg: AppConfig, cache: GisCache) -> tuple[GisModel, str]:
+def load_gis_model(cfg: AppConfig, cache: GisCache) -> tuple[GisModel, str, Path]:
     """The configured GIS model, mapped from the GIS cache (gis.cache: paged in only where it is
-    cropped; a model larger than the board's RAM works) and its site id. A file already imported
-    unchanged with the same settings is not parsed again (a LAZ or a tileset takes minutes); else
-    it is loaded, saved and mapped back, so the parsed copy is freed. A cached copy that fails its
-    hash check is imported again."""
+    cropped; a model larger than the board's RAM works), its site id and the file a replay loads
+    it from. ``gis.site``: that site as `gis import` / `gis fetch` stored it (GisFormatError when
+    it is not there or fails its hash). ``gis.model``: a file already imported unchanged with the
+    same settings is not parsed again (a LAZ or a tileset takes minutes); else it is loaded, saved
+    and mapped back, so the parsed copy is freed; a cached copy that fails its hash check is
+    imported again."""
     from gis.cache import CacheCorrupt
     from gis.loaders import load_model, source_key
+    from gis.model import GisFormatError
 
-    path, spacing, ground = cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m
+    if cfg.gis.site is not None:
+        try:
+            return cache.load_model(cfg.gis.site), cfg.gis.site, cache.model_file(cfg.gis.site)
+        except KeyError:
+            raise GisFormatError(cache.root, f"no site {cfg.gis.site!r} in the GIS cache (`terraslam gis ls` lists them)") from None
+        except CacheCorrupt as e:
+            raise GisFormatError(cache.root, str(e)) from None
+    path, spacing, ground = cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground
     key = source_key(path, spacing, ground)
     site_id = cache.imported(key)
     if site_id is not None:
         try:
             model = cache.load_model(site_id)
             log_event(log, "gis_model", f"{path}: unchanged since imported as site {site_id}; mapped from the cache")
-            return model, site_id
+            return model, site_id, path
         except CacheCorrupt as e:
             log_event(log, "gis_cache_corrupt", f"{e}; importing {path} again", level=logging.WARNING)
     site_id = cache.save_model(load_model(path, spacing, ground), source_key=key)
-    return cache.load_model(site_id), site_id
+    return cache.load_model(site_id), site_id, path
 
 
 def run_service(cfg: AppConfig) -> int:
@@ -132,14 +143,15 @@ def run_service(cfg: AppConfig) -> int:
     from mavlink_bridge.bridge import Bridge
 
     setup_logging(cfg.logging)
-    if cfg.gis.model is None:
-        log.error("gis.model is not set: the service needs a GIS model file (any supported format)")
+    if cfg.gis.model is None and cfg.gis.site is None:
+        log.error("neither gis.model nor gis.site is set: the service needs a GIS model file (any supported format) "
+                  "or a site of the GIS cache")
         return 2
     cache = GisCache(cfg.gis.cache_dir.expanduser())
     try:
-        model, site_id = load_gis_model(cfg, cache)
+        model, site_id, model_file = load_gis_model(cfg, cache)
     except (GisFormatError, OSError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
-        log.error("cannot load the GIS model (gis.model): %s", e)
+        log.error("cannot load the GIS model (gis.%s): %s", "site" if cfg.gis.site else "model", e)
         return 2
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
@@ -150,10 +162,10 @@ def run_service(cfg: AppConfig) -> int:
     georef_n = _restore_georef(cache, site_id, localizer)
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
              if cfg.persistence.enabled else None)
-    recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id)
+    recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id, model_file)
     if recorder is not None and localizer.worker is not None:  # the registrations too, for gis.align.replay
         try:
-            localizer.worker.journal = open_journal(recorder.out / "registrations", cfg.gis.model.expanduser(), cfg, model.origin)
+            localizer.worker.journal = open_journal(recorder.out / "registrations", model_file, cfg, model.origin)
         except OSError as e:
             log_event(log, "recording_unavailable", f"registration journal off for this run: {e}", level=logging.ERROR)
     bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=recorder.on_gnss if recorder else None,

@@ -13,9 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import sqlite3
-import struct
 import time
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +21,7 @@ import numpy as np
 
 from gis.align.georef import GeorefEvidence
 from gis.geodesy import LocalFrame
-from gis.model import GisModel
+from gis.model import GisFormatError, GisModel, model_from_npz
 from gis.sim3 import Sim3
 
 KINDS = ("rough", "fine")
@@ -151,9 +149,10 @@ class GisCache:
             raise CacheCorrupt(f"site {site_id!r}: model file {path} is missing")
         if _sha256_file(path) != row["sha256"]:
             raise CacheCorrupt(f"site {site_id!r}: model file {path} does not match its SHA-256 (corrupted)")
-        z = _npz_mapped(path)
-        return GisModel(z["points_enu"], z["normals_enu"], z["labels"], LocalFrame(*map(float, z["origin"])),
-                        row["source_crs"], Path(row["source_path"]))
+        try:
+            return model_from_npz(path, row["source_crs"], Path(row["source_path"]))
+        except GisFormatError as e:
+            raise CacheCorrupt(f"site {site_id!r}: {e}") from None
 
     def load_transform(self, site_id: str, kind: str) -> tuple[Sim3, dict] | None:
         with self._db() as db:
@@ -180,6 +179,13 @@ class GisCache:
                 best = (d, e)
         return None if best is None else best[1]
 
+    def model_file(self, site_id: str) -> Path:
+        """The cached model file of a site (an .npz ``gis.loaders.load_model`` reads too)."""
+        row = self._row(site_id)
+        if row is None:
+            raise KeyError(f"no cached model for site {site_id!r}")
+        return self.root / "models" / row["file"]
+
     def _row(self, site_id: str):
         with self._db() as db:
             db.row_factory = sqlite3.Row
@@ -194,35 +200,6 @@ class GisCache:
             self.root / "models" / r["file"], r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
             rough[0] if rough else None, fine[0] if fine else None, meta, self.load_georef(r["site_id"]),
         )
-
-
-def _npz_mapped(path: Path) -> dict[str, np.ndarray]:
-    """The arrays of an .npz written by ``np.savez`` (ZIP members stored, not deflated), each
-    memory-mapped read-only where it lies in the file, so that a model larger than the board's RAM
-    is paged in only where it is cropped. By hand because NumPy maps .npy files but not the
-    members of an .npz (its ``mmap_mode`` is ignored there); a deflated member is read instead.
-    A member's data starts after its 30-byte ZIP local header, name and extra field (APPNOTE
-    §4.3.7), then the .npy header (NumPy format 1.0 or 2.0)."""
-    out: dict[str, np.ndarray] = {}
-    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
-        for info in zf.infolist():
-            name = info.filename.removesuffix(".npy")
-            if info.compress_type != zipfile.ZIP_STORED:
-                out[name] = np.load(zf.open(info))
-                continue
-            f.seek(info.header_offset)
-            local = f.read(30)
-            if local[:4] != b"PK\x03\x04":
-                raise CacheCorrupt(f"{path}: member {info.filename} has no ZIP local header")
-            name_len, extra_len = struct.unpack("<HH", local[26:30])
-            f.seek(info.header_offset + 30 + name_len + extra_len)
-            version = np.lib.format.read_magic(f)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, fortran, dtype = read_header(f)
-            if dtype.hasobject or fortran:
-                raise CacheCorrupt(f"{path}: member {info.filename} is not a plain C-ordered array")
-            out[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape) if np.prod(shape) else np.zeros(shape, dtype)
-    return out
 
 
 def _sha256_file(path: Path) -> str:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class GisConfig(BaseModel):
@@ -11,10 +11,25 @@ class GisConfig(BaseModel):
 
     cache_dir: Path = Field(Path("~/.cache/terraslam/gis"), description="GIS cache (SQLite index + model files)")
     model: Path | None = Field(None, description="GIS model file to use directly (any supported format)")
+    site: str | None = Field(None, description="instead of model: a site of the GIS cache (what `terraslam gis import` or `gis fetch` stored; `gis ls` lists them)")
     fetch_radius_m: float = Field(10_000.0, gt=0, le=100_000, description="fetch models within this radius of the rough position (TerraSLAM §6)")
     fetch_timeout_s: float = Field(30.0, gt=0, le=600)
     sample_spacing_m: float = Field(1.0, gt=0.05, le=20, description="surface sampling of meshes/polygons when loading a model (one point per spacing²); 3D Tiles are loaded at the coarsest level whose geometric error is at most this")
-    footprint_ground_h_msl_m: float | None = Field(None, ge=-500, le=9000, description="the site's ground height above MSL for building footprints that carry no heights (OSM, GeoJSON without z); such files are refused without it")
+    footprint_ground_h_msl_m: float | None = Field(None, ge=-500, le=9000, description="the site's ground height above MSL for building footprints that carry no heights (OSM, GeoJSON without z); such files are refused without it or footprint_ground_dem")
+    footprint_ground_dem: Path | None = Field(None, description="a terrain model (GeoTIFF DTM, heights' datum as for any GeoTIFF model) under building footprints that carry no heights: each stands on it at its outline's lowest vertex (hilly sites: one ground height is metres off); instead of footprint_ground_h_msl_m")
+
+    @model_validator(mode="after")
+    def _one_of_each(self) -> "GisConfig":
+        if self.footprint_ground_h_msl_m is not None and self.footprint_ground_dem is not None:
+            raise ValueError("set footprint_ground_h_msl_m or footprint_ground_dem, not both")
+        if self.model is not None and self.site is not None:
+            raise ValueError("set gis.model or gis.site, not both")
+        return self
+
+    @property
+    def footprint_ground(self) -> float | Path | None:
+        """What footprints without heights stand on (gis.loaders.Ground)."""
+        return self.footprint_ground_dem.expanduser() if self.footprint_ground_dem is not None else self.footprint_ground_h_msl_m
 
 
 class AlignmentConfig(BaseModel):

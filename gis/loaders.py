@@ -15,12 +15,14 @@ Formats (dispatched on content, then extension):
   highest LoD geometry of each city object (geometry templates instanced), labelled by object type.
 - GeoJSON building footprints (WGS-84 lon/lat, RFC 7946), extruded by ``height`` (m) or by
   ``building:levels`` × 3 m, else ``DEFAULT_BUILDING_HEIGHT_M``; the base is the polygon's third
-  coordinate (ellipsoidal height) if given, else ``ground_h_msl_m`` (the site's ground, MSL, turned
-  ellipsoidal with EGM96 at the footprint) + ``min_height``. Footprints without heights and no
-  ``ground_h_msl_m`` are refused: a model at the wrong altitude would only be rejected later.
+  coordinate (ellipsoidal height) if given, else ``ground`` + ``min_height``: the site's ground
+  height above MSL (turned ellipsoidal with EGM96 at the footprint) or a terrain model (GeoTIFF
+  DTM, read at the outline's lowest vertex). Footprints without heights and no ``ground`` are
+  refused: a model at the wrong altitude would only be rejected later.
 - OpenStreetMap files (.osm.pbf, .osm XML, .osm.bz2/.osm.gz), read by pyosmium: every area tagged
   ``building`` or ``building:part`` (closed ways and multipolygon relations, holes kept), extruded
-  with the same height rules as GeoJSON (OSM carries no ground heights: ``ground_h_msl_m`` is needed).
+  with the same height rules as GeoJSON (OSM carries no ground heights: ``ground`` is needed).
+- A GisModel .npz as the GIS cache stores it (``terraslam gis import|fetch``; a site's model file).
 - 3D Tiles 1.0/1.1 (``tileset.json`` with b3dm or glb content, as Cesium and Google Photorealistic
   3D Tiles serve them): the tiles of the coarsest level whose geometric error is at most the
   sampling spacing (finer detail would only be sampled away; ``refine`` REPLACE / ADD as the spec
@@ -54,10 +56,10 @@ from pyproj import datadir as pyproj_datadir
 from pyproj.exceptions import CRSError, ProjError
 from pyproj.transformer import TransformerGroup
 
-from gis.geodesy import LocalFrame, geodetic_to_ecef, msl_to_ellipsoid
+from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
 from gis.model import (
     BUILDING, GROUND, HIGH_VEGETATION, ROAD, UNCLASSIFIED,
-    GisFormatError, GisModel, frame_at_centroid, merge_models, model_from_ecef,
+    GisFormatError, GisModel, frame_at_centroid, merge_models, model_from_ecef, model_from_npz,
 )
 
 log = logging.getLogger(__name__)
@@ -79,19 +81,25 @@ _CITYJSON_LABELS = {
 LOADER_VERSION = 2
 
 
-def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:
+#: what building footprints without heights stand on: the site's ground height above MSL (m), a
+#: terrain model (GeoTIFF DTM), or nothing (such footprints are refused)
+Ground = float | Path | None
+
+
+def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground: Ground = None) -> GisModel:
     """Load a GIS model file (or a 3D Tiles directory) into a GisModel; GisFormatError on bad input.
-    ``ground_h_msl_m``: the site's ground height above MSL, for building footprints that carry none.
+    ``ground``: what building footprints that carry no heights stand on (``Ground``).
     The points come stored cell by cell of the crop index (``GisModel.sorted_by_cell``), as the
     GIS cache keeps and maps them: a model read from its file and one mapped from the cache are
     the same arrays, so a flight's registrations replay bit for bit from either."""
-    return _load_model(Path(path).expanduser(), sample_spacing_m, ground_h_msl_m).sorted_by_cell
+    return _load_model(Path(path).expanduser(), sample_spacing_m, ground).sorted_by_cell
 
 
-def source_key(path: Path | str, sample_spacing_m: float, ground_h_msl_m: float | None) -> str:
+def source_key(path: Path | str, sample_spacing_m: float, ground: Ground) -> str:
     """A SHA-256 naming what ``load_model`` would make of path with these settings: the file's (or,
     for a 3D Tiles directory, every file's) size and modification time, a mesh's georeference
-    sidecar, the settings and LOADER_VERSION. Equal keys: the cached import can stand in for
+    sidecar, the settings (a terrain model for footprints: its files too) and LOADER_VERSION.
+    Equal keys: the cached import can stand in for
     loading the file again (gis.cache ``imported``)."""
     path = Path(path).expanduser().resolve()
     files = sorted(f for f in path.rglob("*") if f.is_file()) if path.is_dir() else \
@@ -99,12 +107,13 @@ def source_key(path: Path | str, sample_spacing_m: float, ground_h_msl_m: float 
     if not files:
         raise GisFormatError(path, "no such file")
     stats = [[str(f.relative_to(path.parent)), f.stat().st_size, f.stat().st_mtime_ns] for f in files]
-    doc = {"path": str(path), "files": stats, "sample_spacing_m": sample_spacing_m, "ground_h_msl_m": ground_h_msl_m,
+    ground_doc = source_key(ground, 0.0, None) if isinstance(ground, Path) else ground
+    doc = {"path": str(path), "files": stats, "sample_spacing_m": sample_spacing_m, "ground": ground_doc,
            "loader_version": LOADER_VERSION}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
-def _load_model(path: Path, sample_spacing_m: float, ground_h_msl_m: float | None) -> GisModel:
+def _load_model(path: Path, sample_spacing_m: float, ground: Ground) -> GisModel:
     if path.is_dir():
         if (path / "tileset.json").is_file():
             return load_3dtiles(path / "tileset.json", sample_spacing_m)
@@ -113,9 +122,11 @@ def _load_model(path: Path, sample_spacing_m: float, ground_h_msl_m: float | Non
         raise GisFormatError(path, "no such file")
     name = path.name.lower()
     if name.endswith((".pbf", ".osm", ".osm.bz2", ".osm.gz")):
-        return load_osm(path, sample_spacing_m, ground_h_msl_m)
+        return load_osm(path, sample_spacing_m, ground)
     if name.endswith(".jsonl"):
         return load_cityjson_seq(path, sample_spacing_m)
+    if name.endswith(".npz"):  # a GisModel as the GIS cache stores it (a site's model file)
+        return model_from_npz(path)
     with open(path, "rb") as f:
         head = f.read(16)
     if head.startswith(b"ply"):
@@ -136,7 +147,7 @@ def _load_model(path: Path, sample_spacing_m: float, ground_h_msl_m: float | Non
         if kind == "CityJSON":
             return load_cityjson(path, sample_spacing_m, doc)
         if kind in ("FeatureCollection", "Feature"):
-            return load_geojson(path, sample_spacing_m, ground_h_msl_m, doc)
+            return load_geojson(path, sample_spacing_m, ground, doc)
         if isinstance(doc, dict) and "asset" in doc and "root" in doc:
             return load_3dtiles(path, sample_spacing_m)
         raise GisFormatError(path, f"JSON is neither CityJSON, GeoJSON nor a 3D Tiles tileset (type={kind!r})")
@@ -387,6 +398,7 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     with ds:
         crs, vertical = _raster_georef(path, ds)
         k = max(1, int(round(sample_spacing_m / _pixel_size_m(ds, crs))))
+        scale, offset = ds.scales[0], ds.offsets[0]  # stored value → height (GDAL band scale/offset: packed int16 DEMs)
         rows, cols = np.arange(k // 2, ds.height, k), np.arange(k // 2, ds.width, k)  # picked pixels
         pts, nrms, up_sign = [], [], 0.0
         for bi in range(0, len(rows) - 1, RASTER_BLOCK_PX):
@@ -394,7 +406,7 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
                 r, c = rows[bi:bi + RASTER_BLOCK_PX + 1], cols[bj:bj + RASTER_BLOCK_PX + 1]  # one pixel of overlap
                 win = Window(int(c[0]), int(r[0]), int(c[-1] - c[0] + 1), int(r[-1] - r[0] + 1))
                 try:
-                    z = ds.read(1, window=win, masked=True)[(r - r[0])[:, None], (c - c[0])[None, :]]
+                    z = ds.read(1, window=win, masked=True)[(r - r[0])[:, None], (c - c[0])[None, :]] * scale + offset
                 except rasterio.errors.RasterioIOError as e:
                     raise GisFormatError(path, f"cannot read GeoTIFF block at row {r[0]}, column {c[0]}: {e}") from None
                 mesh = _heightfield_ecef(path, ds.transform, r, c, z, crs, vertical)
@@ -585,7 +597,7 @@ def _surfaces(b):
             yield from _surfaces(x)
 
 
-def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None,
+def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground: Ground = None,
                  doc: dict | None = None) -> GisModel:
     doc = doc if doc is not None else _read_json(path)
     feats = doc["features"] if doc.get("type") == "FeatureCollection" else [doc]
@@ -609,7 +621,7 @@ def load_geojson(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: floa
             raise GisFormatError(path, f"feature {i}: {type(e).__name__}: {e}") from None
     if not footprints:
         raise GisFormatError(path, "GeoJSON holds no Polygon/MultiPolygon footprints")
-    return _extruded_buildings(path, footprints, sample_spacing_m, ground_h_msl_m)
+    return _extruded_buildings(path, footprints, sample_spacing_m, ground)
 
 
 def _geojson_legacy_crs(path: Path, member) -> Callable[[np.ndarray], np.ndarray]:
@@ -637,7 +649,7 @@ def _geojson_legacy_crs(path: Path, member) -> Callable[[np.ndarray], np.ndarray
     return to_lonlat
 
 
-def load_osm(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | None = None) -> GisModel:
+def load_osm(path: Path, sample_spacing_m: float = 1.0, ground: Ground = None) -> GisModel:
     """OSM building footprints (PBF / XML) through pyosmium's area assembler (multipolygons, holes)."""
     import osmium
 
@@ -667,7 +679,7 @@ def load_osm(path: Path, sample_spacing_m: float = 1.0, ground_h_msl_m: float | 
     if bad:
         log.warning("%s: %d unreadable OSM height tags (e.g. %s) replaced by building:levels or %.0f m",
                     path, len(bad), ", ".join(bad[:3]), DEFAULT_BUILDING_HEIGHT_M)
-    return _extruded_buildings(path, footprints, sample_spacing_m, ground_h_msl_m)
+    return _extruded_buildings(path, footprints, sample_spacing_m, ground)
 
 
 def _osm_height(tags: dict, bad: list[str]) -> float:
@@ -700,24 +712,40 @@ class Footprint:
     height_m: float  # top above ground
 
 
-def _extruded_buildings(path: Path, footprints: list[Footprint], sample_spacing_m: float,
-                        ground_h_msl_m: float | None) -> GisModel:
-    """Footprints → walls + roofs in one model (local ENU frame at the footprints' centroid)."""
+def _extruded_buildings(path: Path, footprints: list[Footprint], sample_spacing_m: float, ground: Ground) -> GisModel:
+    """Footprints → walls + roofs in one model (local ENU frame at the footprints' centroid). A
+    footprint without heights stands on ``ground``: the site's height above MSL, or a terrain model
+    (GeoTIFF DTM) read at its outline's lowest vertex (on a slope its walls reach the ground);
+    footprints outside the DTM or over its nodata are left out, with a warning."""
     all_ll = np.concatenate([f.rings_lonlat[0][:, :2] for f in footprints])
     lat_c, lon_c = float(all_ll[:, 1].mean()), float(all_ll[:, 0].mean())
-    bases = []
-    for f in footprints:
-        if f.base_h_ellipsoid_m is not None:
-            bases.append(f.base_h_ellipsoid_m)
-        elif ground_h_msl_m is None:
-            raise GisFormatError(path, "building footprints carry no heights: give the site's ground height "
-                                       "(gis.footprint_ground_h_msl_m / --ground-h-msl-m)")
-        else:
+    need = [i for i, f in enumerate(footprints) if f.base_h_ellipsoid_m is None]
+    if need and ground is None:
+        raise GisFormatError(path, "building footprints carry no heights: give the site's ground height "
+                                   "(gis.footprint_ground_h_msl_m / --ground-h-msl-m) or a terrain model (gis.footprint_ground_dem)")
+    bases: list[float | None] = [f.base_h_ellipsoid_m for f in footprints]
+    if need and isinstance(ground, Path):
+        rings = [footprints[i].rings_lonlat[0] for i in need]
+        ll = np.concatenate(rings)
+        h = dem_heights_ellipsoid_m(ground, ll[:, 0], ll[:, 1])
+        for i, part in zip(need, np.split(h, np.cumsum([len(r) for r in rings])[:-1])):
+            bases[i] = float(np.nanmin(part)) + footprints[i].min_height_m if np.isfinite(part).any() else None
+    elif need:
+        for i in need:
+            f = footprints[i]
             lon, lat = f.rings_lonlat[0][:, 0].mean(), f.rings_lonlat[0][:, 1].mean()
-            bases.append(float(msl_to_ellipsoid(lat, lon, ground_h_msl_m)) + f.min_height_m)
-    origin = LocalFrame(lat_c, lon_c, float(np.mean(bases)))
+            bases[i] = float(msl_to_ellipsoid(lat, lon, float(ground))) + f.min_height_m
+    outside = sum(b is None for b in bases)
+    if outside:
+        log.warning("%s: %d footprints outside the terrain model %s (or over its nodata) left out", path, outside, ground)
+    known = [b for b in bases if b is not None]
+    if not known:
+        raise GisFormatError(path, f"no footprint lies on the terrain model {ground}")
+    origin = LocalFrame(lat_c, lon_c, float(np.mean(known)))
     pts, nrms, skipped = [], [], 0
     for f, base in zip(footprints, bases):
+        if base is None:
+            continue
         # a polygon with heights is extruded from them by height_m; else from min_height up to height_m (OSM)
         extent_m = f.height_m if f.base_h_ellipsoid_m is not None else f.height_m - f.min_height_m
         if extent_m <= 0:
@@ -733,6 +761,32 @@ def _extruded_buildings(path: Path, footprints: list[Footprint], sample_spacing_
         raise GisFormatError(path, "no footprint with a positive height (min_height ≥ height everywhere)")
     p = np.concatenate(pts)
     return GisModel(p, np.concatenate(nrms), np.full(len(p), BUILDING, np.uint8), origin, "EPSG:4979", path)
+
+
+def dem_heights_ellipsoid_m(dem: Path, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
+    """Ellipsoidal heights (m) of a GeoTIFF terrain model at WGS-84 positions (its pixel there, no
+    interpolation); NaN outside it or over nodata. CRS and the heights' datum as ``load_geotiff``."""
+    import rasterio
+
+    try:
+        ds = rasterio.open(dem)
+    except rasterio.errors.RasterioIOError as e:
+        raise GisFormatError(dem, f"cannot read the terrain model (GeoTIFF): {e}") from None
+    with ds:
+        crs, vertical = _raster_georef(dem, ds)
+        horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
+        x, y = Transformer.from_crs("EPSG:4326", horizontal, always_xy=True).transform(lon_deg, lat_deg)
+        z = np.ma.array([v[0] for v in ds.sample(zip(x, y), masked=True)]) if len(x) else np.ma.zeros(0)
+        z = z.astype(float) * ds.scales[0] + ds.offsets[0]
+    ok = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
+    h = np.full(len(x), np.nan)
+    if ok.any():
+        try:
+            ecef = crs_to_ecef(np.column_stack([np.asarray(x)[ok], np.asarray(y)[ok], np.ma.getdata(z)[ok].astype(float)]), crs, vertical)
+        except ValueError as e:
+            raise GisFormatError(dem, f"cannot transform from {crs.name}: {e}") from None
+        h[ok] = ecef_to_geodetic(ecef)[2]
+    return h
 
 
 def _building_height(props: dict) -> float:

@@ -12,6 +12,8 @@ cell by cell (the GIS cache's) needs no per-point index and can stay memory-mapp
 from __future__ import annotations
 
 import functools
+import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,6 +172,50 @@ def merge_models(models: list[GisModel], source_path: Path | str) -> GisModel:
         np.concatenate(pts), np.concatenate(nrm), np.concatenate([m.labels for m in models]),
         origin, ";".join(crs), Path(source_path),
     )
+
+
+def npz_mapped(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an .npz written by ``np.savez`` (ZIP members stored, not deflated), each
+    memory-mapped read-only where it lies in the file, so that a model larger than the board's RAM
+    is paged in only where it is cropped. By hand because NumPy maps .npy files but not the
+    members of an .npz (its ``mmap_mode`` is ignored there); a deflated member is read instead.
+    A member's data starts after its 30-byte ZIP local header, name and extra field (APPNOTE
+    §4.3.7), then the .npy header (NumPy format 1.0 or 2.0)."""
+    out: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            name = info.filename.removesuffix(".npy")
+            if info.compress_type != zipfile.ZIP_STORED:
+                out[name] = np.load(zf.open(info))
+                continue
+            f.seek(info.header_offset)
+            local = f.read(30)
+            if local[:4] != b"PK\x03\x04":
+                raise GisFormatError(path, f"member {info.filename} has no ZIP local header")
+            name_len, extra_len = struct.unpack("<HH", local[26:30])
+            f.seek(info.header_offset + 30 + name_len + extra_len)
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            if dtype.hasobject or fortran:
+                raise GisFormatError(path, f"member {info.filename} is not a plain C-ordered array")
+            out[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape) if np.prod(shape) else np.zeros(shape, dtype)
+    return out
+
+
+def model_from_npz(path: Path | str, source_crs: str = "", source_path: Path | str | None = None) -> GisModel:
+    """A GisModel stored as the GIS cache stores it (``points_enu``, ``normals_enu``, ``labels``,
+    ``origin`` = lat, lon, h of the ENU frame; uncompressed .npz), memory-mapped (``npz_mapped``)."""
+    path = Path(path)
+    try:
+        z = npz_mapped(path)
+        arrays = z["points_enu"], z["normals_enu"], z["labels"]
+        origin = LocalFrame(*map(float, z["origin"]))
+    except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as e:
+        if isinstance(e, GisFormatError):
+            raise
+        raise GisFormatError(path, f"not a GIS model .npz ({type(e).__name__}: {e})") from None
+    return GisModel(*arrays, origin, source_crs or "GisModel .npz", source_path or path)
 
 
 def _all_finite(a: np.ndarray) -> bool:

@@ -29,7 +29,7 @@ import numpy as np
 import requests
 
 from gis.geodesy import LocalFrame, geodetic_to_ecef
-from gis.loaders import load_3dtiles, load_model, tileset_contents
+from gis.loaders import Ground, load_3dtiles, load_model, tileset_contents
 from gis.model import GisFormatError, GisModel, merge_models
 
 log = logging.getLogger(__name__)
@@ -44,13 +44,13 @@ class FetchError(RuntimeError):
 class LocalProvider:
     paths: tuple[Path, ...]
     sample_spacing_m: float = 1.0
-    ground_h_msl_m: float | None = None  # for building footprints without heights (OSM)
+    ground: Ground = None  # what building footprints without heights stand on (OSM; gis.loaders.Ground)
 
     def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
         out = []
         for p in self.paths:
             for f in _model_files(Path(p)):
-                m = load_model(f, self.sample_spacing_m, self.ground_h_msl_m)
+                m = load_model(f, self.sample_spacing_m, self.ground)
                 c = m.origin.geodetic_to_enu(lat_deg, lon_deg, m.origin.h0_ellipsoid_m)
                 if np.min(np.linalg.norm(m.points_enu[:, :2] - c[:2], axis=1)) <= radius_m:
                     out.append(m)

@@ -270,7 +270,7 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
 def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_one(tmp_path, monkeypatch, caplog):
     """`terraslam run` loads gis.model through the cache: the first start parses the file and maps
     the saved copy back; a restart with the file unchanged maps it without parsing; a changed file
-    or a cached copy that fails its hash is imported again."""
+    or a cached copy that fails its hash is imported again. gis.site maps a cached site."""
     import os
 
     from companion.config import AppConfig
@@ -285,7 +285,7 @@ def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_on
     path.with_name("city.ply.georef.json").write_text(json.dumps({"crs": "EPSG:32632", "offset_m": [465000, 5250000, 400]}))
     cfg = AppConfig(gis=GisConfig(model=path, cache_dir=tmp_path / "cache", sample_spacing_m=2.0))
     cache = GisCache(cfg.gis.cache_dir)
-    first, site = load_gis_model(cfg, cache)
+    first, site, file = load_gis_model(cfg, cache)
     assert isinstance(first.points_enu.base, np.memmap)
     parsed = loaders.load_model(path, 2.0)
     np.testing.assert_array_equal(first.points_enu, parsed.points_enu)  # the file's model, cell-sorted both ways
@@ -293,7 +293,7 @@ def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_on
     def no_parsing(*a, **k):
         raise AssertionError("an unchanged, imported file was parsed again")
     monkeypatch.setattr(loaders, "load_model", no_parsing)
-    again, site2 = load_gis_model(cfg, cache)
+    again, site2, _ = load_gis_model(cfg, cache)
     assert site2 == site and isinstance(again.points_enu.base, np.memmap)
     np.testing.assert_array_equal(again.points_enu, first.points_enu)
     monkeypatch.undo()
@@ -301,16 +301,29 @@ def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_on
     mesh2, _ = box_city_mesh(120.0, seed=4)  # the file changes: imported again
     mesh2.export(path)
     os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
-    changed, site3 = load_gis_model(cfg, cache)
+    changed, site3, _ = load_gis_model(cfg, cache)
     assert site3 != site and len(changed) != len(first)
     f = cache.root / "models" / cache._row(site3)["file"]  # its cached copy corrupted: imported again, with a warning
     data = bytearray(f.read_bytes())
     data[len(data) // 2] ^= 0xFF
     f.write_bytes(bytes(data))
     with caplog.at_level("WARNING"):
-        fixed, _ = load_gis_model(cfg, cache)
+        fixed, _, _ = load_gis_model(cfg, cache)
     assert "SHA-256" in caplog.text and "importing" in caplog.text
     np.testing.assert_array_equal(fixed.points_enu, changed.points_enu)
+    assert file == path  # what a replay of the flight loads
+
+    # gis.site instead: the site as `gis import`/`gis fetch` stored it; the cache's file reads as a model too
+    from gis.model import GisFormatError
+    by_site = AppConfig(gis=GisConfig(site=site3, cache_dir=tmp_path / "cache"))
+    m, s_id, f = load_gis_model(by_site, cache)
+    assert s_id == site3 and f == cache.model_file(site3) and isinstance(m.points_enu.base, np.memmap)
+    np.testing.assert_array_equal(m.points_enu, changed.points_enu)
+    np.testing.assert_array_equal(loaders.load_model(f).points_enu, changed.points_enu)
+    with pytest.raises(GisFormatError, match="no site 'atlantis'"):
+        load_gis_model(AppConfig(gis=GisConfig(site="atlantis", cache_dir=tmp_path / "cache")), cache)
+    with pytest.raises(ValueError, match="not both"):
+        GisConfig(site=site3, model=path)
 
 
 def test_size_sweep_maps_each_model_from_a_cache_in_a_fresh_process():

@@ -38,7 +38,7 @@ def test_gis_import_ls_fetch(tmp_path):
     from gis.config import GisConfig
     from gis.loaders import source_key
     defaults = GisConfig()  # a service with this file as gis.model maps the import, not parsing the file again
-    assert GisCache(cache).imported(source_key(ply, defaults.sample_spacing_m, defaults.footprint_ground_h_msl_m)) == "demo"
+    assert GisCache(cache).imported(source_key(ply, defaults.sample_spacing_m, defaults.footprint_ground)) == "demo"
     assert GisCache(cache).imported(source_key(ply, 2 * defaults.sample_spacing_m, None)) is None
     r = _run("gis", "ls", "--cache-dir", str(cache))
     assert r.returncode == 0 and "demo" in r.stdout

@@ -197,6 +197,17 @@ def test_geotiff_surface_model_roofs_walls_and_holes(tmp_path):
     bare = _write_dsm(tmp_path / "bare.tif", vertical=None)
     with pytest.raises(GisFormatError, match="bare.tif.georef.json"):
         load_model(bare)
+    import rasterio  # the same DSM packed as int16 decimetres above 390 m (GDAL band scale / offset)
+    with rasterio.open(tmp_path / "dsm.tif") as src:
+        z, prof = src.read(1), src.profile
+    prof.update(dtype="int16", nodata=-32768)
+    with rasterio.open(tmp_path / "packed.tif", "w", **prof) as dst:
+        dst.write(np.where(z == -9999.0, -32768, np.round((z - 390.0) * 10)).astype(np.int16), 1)
+        dst.scales, dst.offsets = (0.1,), (390.0,)
+    (tmp_path / "packed.tif.georef.json").write_text(json.dumps({"vertical": "ellipsoid"}))
+    packed = load_model(tmp_path / "packed.tif", sample_spacing_m=1.0)
+    np.testing.assert_allclose(np.sort(packed.origin.enu_to_geodetic(packed.points_enu)[2]),
+                               np.sort(m.origin.enu_to_geodetic(m.points_enu)[2]), atol=0.02)
 
 
 def test_geotiff_in_geographic_degrees_is_sampled_in_metres(tmp_path):
@@ -343,7 +354,7 @@ def test_geojson_footprints_height_and_levels(tmp_path):
     path.write_text(json.dumps(fc))
     with pytest.raises(GisFormatError, match="no heights"):
         load_model(path)  # the first footprint has no z and no ground height was given
-    m = load_model(path, sample_spacing_m=1.0, ground_h_msl_m=400.0)
+    m = load_model(path, sample_spacing_m=1.0, ground=400.0)
     assert np.all(m.labels == BUILDING)
     lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
     first = lon < lon0 + d + 1e-7
@@ -352,6 +363,49 @@ def test_geojson_footprints_height_and_levels(tmp_path):
     assert h[first].min() == pytest.approx(400 + n_geoid, abs=0.6)  # lowest wall sample: half a spacing up
     assert h[~first].max() == pytest.approx(410 + 21.5, abs=1e-3)  # polygon z is ellipsoidal: no ground needed
     assert h[~first].min() > 409.9
+
+
+def test_footprints_stand_on_a_terrain_model(tmp_path, caplog):
+    """OSM-style footprints without heights on a DTM (GeoTIFF, EGM96 heights, ground rising 1 m per
+    10 m eastwards): each building's walls start at the terrain under its outline's lowest vertex,
+    turned ellipsoidal; a footprint beyond the DTM is left out with a warning; one ground source only."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from gis.config import GisConfig
+    from gis.loaders import dem_heights_ellipsoid_m
+    h, w = 200, 200  # 1 m pixels, 200 × 200 m from OFFSET's corner
+    e = np.arange(w) + 0.5
+    z = np.tile(400.0 + 0.1 * e, (h, 1)).astype(np.float32)
+    dem = tmp_path / "dtm.tif"
+    with rasterio.open(dem, "w", driver="GTiff", height=h, width=w, count=1, dtype="float32", crs=UTM,
+                       transform=from_origin(OFFSET[0], OFFSET[1] + 200.0, 1.0, 1.0)) as ds:
+        ds.write(z, 1)
+    dem.with_name("dtm.tif.georef.json").write_text(json.dumps({"vertical": "egm96"}))
+    to_ll = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True)
+
+    def square(e0, n0, side=20.0):
+        ring = [(e0, n0), (e0 + side, n0), (e0 + side, n0 + side), (e0, n0 + side), (e0, n0)]
+        return [[*to_ll.transform(OFFSET[0] + x, OFFSET[1] + y)] for x, y in ring]
+    feats = [{"type": "Feature", "properties": {"height": 10.0}, "geometry": {"type": "Polygon", "coordinates": [square(e0, 50.0)]}}
+             for e0 in (20.0, 150.0, 400.0)]  # the third is beyond the DTM
+    path = tmp_path / "osm.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    with caplog.at_level("WARNING"):
+        m = load_model(path, sample_spacing_m=1.0, ground=dem)
+    assert "1 footprints outside the terrain model" in caplog.text
+    lat, lon, hgt = m.origin.enu_to_geodetic(m.points_enu)
+    x, _ = Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(lon, lat)
+    for e0 in (20.0, 150.0):
+        mine = np.abs(x - OFFSET[0] - e0 - 10.0) <= 10.5
+        lo_lon, lo_lat = to_ll.transform(OFFSET[0] + e0, OFFSET[1] + 50.0)
+        n_geoid = float(msl_to_ellipsoid(lo_lat, lo_lon, 0.0))
+        assert hgt[mine].min() == pytest.approx(400.0 + 0.1 * (np.floor(e0) + 0.5) + n_geoid, abs=0.6)  # lowest wall sample: ≤ half a spacing up
+        assert hgt[mine].max() == pytest.approx(hgt[mine].min() + 10.0, abs=0.6)
+    assert not np.any(x - OFFSET[0] > 300)
+    assert np.isnan(dem_heights_ellipsoid_m(dem, np.array([0.0]), np.array([0.0]))[0])
+    with pytest.raises(ValueError, match="not both"):
+        GisConfig(footprint_ground_h_msl_m=400.0, footprint_ground_dem=dem)
 
 
 def test_geojson_in_a_projected_crs_named_by_a_legacy_crs_member(tmp_path):
@@ -412,7 +466,7 @@ def test_osm_pbf_buildings_ways_multipolygons_and_bad_tags(tmp_path, caplog):
     lat0, lon0 = 47.37, 8.54
     path = tmp_path / "city.osm.pbf"
     d = _write_osm(path, lat0, lon0)
-    m = load_model(path, sample_spacing_m=1.0, ground_h_msl_m=400.0)
+    m = load_model(path, sample_spacing_m=1.0, ground=400.0)
     assert np.all(m.labels == BUILDING)
     lat, lon, h = m.origin.enu_to_geodetic(m.points_enu)
     g = 400.0 + float(msl_to_ellipsoid(lat0, lon0, 0.0))  # ground, ellipsoidal

@@ -137,7 +137,7 @@ def _earlier_flights_found_the_model_off(cfg_path: Path) -> str:
 
     cfg = load_config(cfg_path)
     cache = GisCache(cfg.gis.cache_dir)
-    site_id = cache.save_model(load_model(cfg.gis.model, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground_h_msl_m))
+    site_id = cache.save_model(load_model(cfg.gis.model, cfg.gis.sample_spacing_m, cfg.gis.footprint_ground))
     chk = GeorefCheck(cfg.alignment.model_sigma_m)
     rng = np.random.default_rng(0)
     for k in range(6):

@@ -82,13 +82,16 @@ def _opt(x: float | None) -> float:
 
 
 def write_meta(folder: Path, model_file: Path | None, sample_spacing_m: float, alignment_config: dict,
-               origin_lat_lon_h: tuple[float, float, float], footprint_ground_h_msl_m: float | None = None) -> None:
+               origin_lat_lon_h: tuple[float, float, float], footprint_ground: float | Path | None = None) -> None:
     """What a replay needs besides the records: the model file and how it was loaded
-    (gis.loaders.load_model's arguments), the alignment configuration, the site origin."""
+    (gis.loaders.load_model's arguments: a terrain model for footprints as its path), the
+    alignment configuration, the site origin."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / META).write_text(json.dumps({
         "model_file": None if model_file is None else str(Path(model_file).resolve()),
-        "sample_spacing_m": sample_spacing_m, "footprint_ground_h_msl_m": footprint_ground_h_msl_m,
+        "sample_spacing_m": sample_spacing_m,
+        "footprint_ground_h_msl_m": None if isinstance(footprint_ground, Path) else footprint_ground,
+        "footprint_ground_dem": str(footprint_ground.resolve()) if isinstance(footprint_ground, Path) else None,
         "alignment": alignment_config, "origin_lat_lon_h": list(origin_lat_lon_h)}, indent=1))
 
 

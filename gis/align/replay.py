@@ -171,7 +171,8 @@ def _run(a: argparse.Namespace) -> None:
     config = AlignmentConfig.model_validate({**meta["alignment"], **over})
     if meta.get("model_file") is None:
         raise SystemExit(f"{a.journal}: the journal names no GIS model file")
-    model = load_model(meta["model_file"], meta["sample_spacing_m"], meta.get("footprint_ground_h_msl_m"))
+    dem = meta.get("footprint_ground_dem")
+    model = load_model(meta["model_file"], meta["sample_spacing_m"], Path(dem) if dem else meta.get("footprint_ground_h_msl_m"))
     records = [r for r in read_journal(a.journal) if r.job.t_s >= a.after]
     print(format_rows(replay(records, model, config, read_truth(a.journal), scan=a.scan, chain=a.chain)))
 
