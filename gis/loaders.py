@@ -35,6 +35,7 @@ Formats (dispatched on content, then extension):
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -391,12 +392,7 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     import rasterio
     from rasterio.windows import Window
 
-    try:
-        ds = rasterio.open(path)
-    except rasterio.errors.RasterioIOError as e:
-        raise GisFormatError(path, f"cannot read GeoTIFF: {e}") from None
-    with ds:
-        crs, vertical = _raster_georef(path, ds)
+    with _raster(path) as (ds, crs, vertical):
         k = max(1, int(round(sample_spacing_m / _pixel_size_m(ds, crs))))
         scale, offset = ds.scales[0], ds.offsets[0]  # stored value → height (GDAL band scale/offset: packed int16 DEMs)
         rows, cols = np.arange(k // 2, ds.height, k), np.arange(k // 2, ds.width, k)  # picked pixels
@@ -423,6 +419,19 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
         raise GisFormatError(path, "GeoTIFF holds no valid heights (all nodata?)")
     n = np.concatenate(nrms) * (up_sign or 1.0)  # one winding for the whole raster: roofs and ground face up
     return model_from_ecef(np.concatenate(pts), n, np.full(sum(map(len, pts)), UNCLASSIFIED, np.uint8), crs.to_string(), path)
+
+
+@contextlib.contextmanager
+def _raster(path: Path):
+    """(the open rasterio dataset, its CRS, the heights' datum: ``_raster_georef``)."""
+    import rasterio
+
+    try:
+        ds = rasterio.open(path)
+    except rasterio.errors.RasterioIOError as e:
+        raise GisFormatError(path, f"cannot read GeoTIFF: {e}") from None
+    with ds:
+        yield ds, *_raster_georef(path, ds)
 
 
 def _pixel_size_m(ds, crs: CRS) -> float:
@@ -766,14 +775,7 @@ def _extruded_buildings(path: Path, footprints: list[Footprint], sample_spacing_
 def dem_heights_ellipsoid_m(dem: Path, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
     """Ellipsoidal heights (m) of a GeoTIFF terrain model at WGS-84 positions (its pixel there, no
     interpolation); NaN outside it or over nodata. CRS and the heights' datum as ``load_geotiff``."""
-    import rasterio
-
-    try:
-        ds = rasterio.open(dem)
-    except rasterio.errors.RasterioIOError as e:
-        raise GisFormatError(dem, f"cannot read the terrain model (GeoTIFF): {e}") from None
-    with ds:
-        crs, vertical = _raster_georef(dem, ds)
+    with _raster(dem) as (ds, crs, vertical):
         horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
         x, y = Transformer.from_crs("EPSG:4326", horizontal, always_xy=True).transform(lon_deg, lat_deg)
         z = np.ma.array([v[0] for v in ds.sample(zip(x, y), masked=True)]) if len(x) else np.ma.zeros(0)
