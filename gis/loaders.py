@@ -778,13 +778,14 @@ def dem_heights_ellipsoid_m(dem: Path, lon_deg: np.ndarray, lat_deg: np.ndarray)
     with _raster(dem) as (ds, crs, vertical):
         horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
         x, y = Transformer.from_crs("EPSG:4326", horizontal, always_xy=True).transform(lon_deg, lat_deg)
-        z = np.ma.array([v[0] for v in ds.sample(zip(x, y), masked=True)]) if len(x) else np.ma.zeros(0)
-        z = z.astype(float) * ds.scales[0] + ds.offsets[0]
-    ok = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
+        samples = list(ds.sample(zip(x, y), masked=True))
+        nodata = np.array([bool(np.ma.getmaskarray(v)[0]) for v in samples], bool)
+        z = np.array([float(np.ma.getdata(v)[0]) for v in samples]) * ds.scales[0] + ds.offsets[0]
+    ok = ~nodata & np.isfinite(z)
     h = np.full(len(x), np.nan)
     if ok.any():
         try:
-            ecef = crs_to_ecef(np.column_stack([np.asarray(x)[ok], np.asarray(y)[ok], np.ma.getdata(z)[ok].astype(float)]), crs, vertical)
+            ecef = crs_to_ecef(np.column_stack([np.asarray(x)[ok], np.asarray(y)[ok], z[ok]]), crs, vertical)
         except ValueError as e:
             raise GisFormatError(dem, f"cannot transform from {crs.name}: {e}") from None
         h[ok] = ecef_to_geodetic(ecef)[2]
