@@ -62,7 +62,7 @@ def _model_files(p: Path) -> list[Path]:
         return [p]
     if not p.is_dir():
         raise GisFormatError(p, "no such file or directory")
-    suffixes = (".ply", ".obj", ".glb", ".gltf", ".las", ".laz", ".json", ".geojson")
+    suffixes = (".ply", ".obj", ".glb", ".gltf", ".las", ".laz", ".json", ".jsonl", ".geojson", ".tif", ".tiff", ".pbf", ".osm")
     return sorted(f for f in p.iterdir() if f.suffix.lower() in suffixes and not f.name.endswith(".georef.json"))
 
 

@@ -334,3 +334,22 @@ def test_size_sweep_maps_each_model_from_a_cache_in_a_fresh_process():
     rows = size_sweep((500.0, 700.0), spacing_m=4.0)
     assert rows[0]["ratio"] == 1.0 and rows[1]["n_model_points"] > rows[0]["n_model_points"] > 1000
     assert all(np.isfinite(r["median_ms"]) and 10.0 < r["anon_mb"] < 4000.0 for r in rows)
+
+
+def test_local_provider_finds_every_supported_format_in_a_folder(tmp_path):
+    """A folder with a GeoTIFF surface model and a CityJSONSeq city (formats the folder scan used to
+    pass over) yields both, merged by fetch_model into one model holding both."""
+    from test_gis_loaders import OFFSET, _cityjson_cube, _write_dsm
+
+    _write_dsm(tmp_path / "dsm.tif")
+    cube = _cityjson_cube()
+    header = {k: v for k, v in cube.items() if k not in ("CityObjects", "vertices")} | {"CityObjects": {}, "vertices": []}
+    feature = {"type": "CityJSONFeature", "id": "b1", "CityObjects": cube["CityObjects"], "vertices": cube["vertices"]}
+    (tmp_path / "city.city.jsonl").write_text(json.dumps(header) + "\n" + json.dumps(feature) + "\n")
+    (tmp_path / "notes.txt").write_text("not a model")
+    from pyproj import Transformer
+    lon, lat = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True).transform(OFFSET[0] + 50, OFFSET[1] + 50)
+    models = LocalProvider((tmp_path,)).fetch(lat, lon, 500.0)
+    assert sorted(m.source_path.name for m in models) == ["city.city.jsonl", "dsm.tif"]
+    merged = fetch_model([LocalProvider((tmp_path,))], lat, lon, 500.0)
+    assert len(merged) == sum(len(m) for m in models)
