@@ -113,17 +113,24 @@ def gis_fetch(
     from gis.model import GisFormatError
     from gis.providers import FetchError, HttpTilesProvider, LocalProvider, fetch_model
 
+    from rich.console import Console
+
     cfg = _gis_config(config)
     cache = _cache(config, cache_dir)
-    providers = [
-        HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m)
-        if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground)
-        for s in source
-    ]
-    try:
-        model = fetch_model(providers, lat, lon, radius_m or cfg.fetch_radius_m, ",".join(source))
-    except (FetchError, GisFormatError) as e:
-        fail(str(e))
+    console = Console(stderr=True)
+    with console.status("fetching") as status:
+        def say(line: str) -> None:
+            status.update(line)
+            console.log(line)
+        providers = [
+            HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m, progress=say)
+            if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground)
+            for s in source
+        ]
+        try:
+            model = fetch_model(providers, lat, lon, radius_m or cfg.fetch_radius_m, ",".join(source))
+        except (FetchError, GisFormatError) as e:
+            fail(str(e))
     site_id = cache.save_model(model, site)
     typer.echo(f"fetched {len(model)} points into site {site_id}")
 

@@ -21,8 +21,9 @@ import logging
 import re
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 from urllib.parse import parse_qsl, unquote, urlencode, urljoin, urlsplit, urlunsplit
 
 import numpy as np
@@ -72,17 +73,26 @@ class HttpTilesProvider:
     download_dir: Path
     timeout_s: float = 30.0
     sample_spacing_m: float = 1.0
+    progress: Callable[[str], None] | None = field(default=None, compare=False)  # a line now and then (CLI status)
 
     def fetch(self, lat_deg: float, lon_deg: float, radius_m: float) -> list[GisModel]:
         centre = geodetic_to_ecef(lat_deg, lon_deg, 0.0)
         urls: dict[Path, str] = {}  # every file this fetch mirrored → its URL
         tiles: list[str] = []  # content URLs, downloaded after the walk, several at a time
+        say = self.progress or (lambda line: None)
+        name = _redacted(self.tileset_url.split("?")[0])
         with requests.Session() as http:  # one connection pool: keep-alive across hundreds of small tiles
+            say(f"{name}: reading tilesets")
             local = self._download(http, self.tileset_url, np.eye(4), "REPLACE", centre, radius_m, 0, urls, tiles)
+            new, done = 0, 0
             with ThreadPoolExecutor(DOWNLOAD_THREADS) as pool:
-                new = sum(pool.map(lambda url: self._get(http, url, urls)[1], tiles))
-        log.info("%s: %d tiles within %.0f m, %d downloaded, %d from %s", self.tileset_url.split("?")[0], len(tiles),
-                 radius_m, new, len(tiles) - new, self.download_dir)
+                for downloaded in pool.map(lambda url: self._get(http, url, urls)[1], tiles):
+                    new, done = new + downloaded, done + 1
+                    if done % 50 == 0 or done == len(tiles):
+                        say(f"{name}: {done} / {len(tiles)} tiles ({new} downloaded, {done - new} from the mirror)")
+        log.info("%s: %d tiles within %.0f m, %d downloaded, %d from %s", name, len(tiles), radius_m, new,
+                 len(tiles) - new, self.download_dir)
+        say(f"{name}: loading {len(tiles)} tiles")
 
         def resolve(ts_path: Path, uri: str) -> Path | None:  # outside the radius: not fetched, left out
             path = self._local_path(urljoin(urls[ts_path], uri))

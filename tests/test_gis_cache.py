@@ -246,8 +246,11 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
     the finest), Draco content decoded into the two boxes where they stand; a later fetch after the
     session expired asks the top tileset again and reaches the far tile with the new session."""
     url, seen, rotate = google_like_server
-    prov = HttpTilesProvider(url, tmp_path / "dl", timeout_s=5.0, sample_spacing_m=1.0)
+    lines: list[str] = []
+    prov = HttpTilesProvider(url, tmp_path / "dl", timeout_s=5.0, sample_spacing_m=1.0, progress=lines.append)
     m = fetch_model([prov], 47.3769, 8.5417, 2_000.0)
+    assert any("2 / 2 tiles (2 downloaded, 0 from the mirror)" in line for line in lines), lines
+    assert not any("SECRET" in line for line in lines)
     got = {p.rsplit("/", 1)[-1] for p, q in seen}
     assert got == {"root.json", "sub.json", "mid_0.glb", "mid_1.glb"}, got
     assert all(q.get("key") == "SECRET" for _, q in seen) and all(q.get("session") == "s1" for p, q in seen if "datasets" in p)
