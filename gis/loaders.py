@@ -27,7 +27,8 @@ Formats (dispatched on content, then extension):
   3D Tiles serve them): the tiles of the coarsest level whose geometric error is at most the
   sampling spacing (finer detail would only be sampled away; ``refine`` REPLACE / ADD as the spec
   says), with tile transforms, RTC_CENTER / CESIUM_RTC, the glTF Y-up → Z-up rotation of the spec,
-  and Draco-compressed meshes (KHR_draco_mesh_compression, decoded by trimesh with DracoPy).
+  and Draco-compressed meshes (KHR_draco_mesh_compression, decoded by trimesh with DracoPy);
+  point cloud tiles (pnts) too, thinned to the sampling spacing.
   Content URIs may carry a query (``?session=…``); see gis.providers for HTTP.
 - glTF files that require an extension changing geometry that we do not decode
   (EXT_meshopt_compression, KHR_mesh_quantization, …) are refused by name: trimesh would load
@@ -845,7 +846,7 @@ def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0,
     models: list[GisModel] = []
     _walk_tileset(tileset_path, np.eye(4), "REPLACE", sample_spacing_m, models, 0, resolve or _relative_uri)
     if not models:
-        raise GisFormatError(tileset_path, "tileset has no b3dm/glb content in the tiles selected")
+        raise GisFormatError(tileset_path, "tileset has no b3dm/pnts/glb content in the tiles selected")
     return merge_models(models, tileset_path)
 
 
@@ -919,6 +920,8 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
         raise GisFormatError(path, "tile content referenced by the tileset is missing")
     data = path.read_bytes()
     rtc = np.zeros(3)
+    if data[:4] == b"pnts":
+        return _load_pnts(path, data, T_ecef_tile, spacing)
     if data[:4] == b"b3dm":
         if len(data) < 28:
             raise GisFormatError(path, "truncated b3dm header")
@@ -930,7 +933,7 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
             rtc = np.asarray(ft.get("RTC_CENTER", [0, 0, 0]), float)
         data = data[28 + ft_json + ft_bin + bt_json + bt_bin :]
     if data[:4] != b"glTF":
-        raise GisFormatError(path, "tile content is neither b3dm nor glb")
+        raise GisFormatError(path, f"tile content is neither b3dm, pnts nor glb ({data[:4]!r}: i3dm / cmpt are not read)")
     gltf_json = _glb_json(path, data)
     check_gltf_extensions(path, gltf_json)
     cesium_rtc = gltf_json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
@@ -947,6 +950,40 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
     R = T_ecef_tile[:3, :3]
     p_ecef = p @ R.T + T_ecef_tile[:3, 3]
     return model_from_ecef(p_ecef, n @ R.T, np.full(len(p), UNCLASSIFIED, np.uint8), "EPSG:4978", path)
+
+
+def _load_pnts(path: Path, data: bytes, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
+    """A point cloud tile (3D Tiles 1.0 pnts: feature table POSITION float32 or POSITION_QUANTIZED
+    uint16 with QUANTIZED_VOLUME_OFFSET / _SCALE, RTC_CENTER; tile coordinates are Z-up, no glTF
+    rotation), thinned to one point per spacing voxel; normals estimated (a feature-table NORMAL is
+    not trusted to face up). Draco-compressed pnts are refused by name."""
+    if len(data) < 28:
+        raise GisFormatError(path, "truncated pnts header")
+    _, _, total, ft_json, ft_bin, _, _ = struct.unpack("<4sIIIIII", data[:28])
+    if total != len(data) or 28 + ft_json + ft_bin > len(data):
+        raise GisFormatError(path, f"pnts byteLength {total} != file size {len(data)} (truncated?)")
+    try:
+        ft = json.loads(data[28:28 + ft_json].decode("utf-8").strip(" \x00") or "{}")
+        body = data[28 + ft_json:28 + ft_json + ft_bin]
+        n = int(ft["POINTS_LENGTH"])
+        if "3DTILES_draco_point_compression" in (ft.get("extensions") or {}):
+            raise GisFormatError(path, "Draco-compressed point cloud tile (3DTILES_draco_point_compression) is not read")
+        if "POSITION" in ft:
+            p = np.frombuffer(body, "<f4", 3 * n, int(ft["POSITION"]["byteOffset"])).reshape(n, 3).astype(float)
+        else:
+            q = np.frombuffer(body, "<u2", 3 * n, int(ft["POSITION_QUANTIZED"]["byteOffset"])).reshape(n, 3)
+            p = np.asarray(ft["QUANTIZED_VOLUME_OFFSET"], float) + q / 65535.0 * np.asarray(ft["QUANTIZED_VOLUME_SCALE"], float)
+        p = p + np.asarray(ft.get("RTC_CENTER", [0.0, 0.0, 0.0]), float)
+    except GisFormatError:
+        raise
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as e:  # json, frombuffer beyond the body, shapes
+        raise GisFormatError(path, f"cannot parse pnts feature table: {type(e).__name__}: {e}") from None
+    p_ecef = p @ T_ecef_tile[:3, :3].T + T_ecef_tile[:3, 3]
+    p_ecef = p_ecef[first_per_voxel(p_ecef, spacing)]
+    origin = frame_at_centroid(p_ecef)
+    p_enu = origin.ecef_to_enu(p_ecef)
+    return GisModel(p_enu, estimate_normals(p_enu, 3.0 * max(_median_spacing(p_enu), spacing)),
+                    np.full(len(p_enu), UNCLASSIFIED, np.uint8), origin, "EPSG:4978", path)
 
 
 def _read_json(path: Path):

@@ -101,7 +101,7 @@ class HttpTilesProvider:
         try:
             return [load_3dtiles(local, self.sample_spacing_m, resolve=resolve)]
         except GisFormatError as e:
-            if "no b3dm/glb content" in str(e):
+            if "no b3dm/pnts/glb content" in str(e):
                 return []
             raise
 

@@ -550,6 +550,48 @@ def _hlod_tileset(tmp_path, refine: str, content_uri_0: str = "tiles/coarse.glb"
     return path
 
 
+def _pnts(p_tile: np.ndarray, quantized: bool, rtc: np.ndarray) -> bytes:
+    """A pnts tile as 3D Tiles 1.0 lays it out (written here to the spec: no kept Python writer
+    runs on this numpy): header, feature table JSON padded to 8 bytes, then the binary body."""
+    local = p_tile - rtc
+    if quantized:
+        lo, span = local.min(axis=0), np.ptp(local, axis=0)
+        body = np.round((local - lo) / span * 65535).astype("<u2").tobytes()
+        ft = {"POINTS_LENGTH": len(p_tile), "POSITION_QUANTIZED": {"byteOffset": 0},
+              "QUANTIZED_VOLUME_OFFSET": lo.tolist(), "QUANTIZED_VOLUME_SCALE": span.tolist(), "RTC_CENTER": rtc.tolist()}
+    else:
+        body = local.astype("<f4").tobytes()
+        ft = {"POINTS_LENGTH": len(p_tile), "POSITION": {"byteOffset": 0}, "RTC_CENTER": rtc.tolist()}
+    js = json.dumps(ft).encode()
+    js += b" " * ((8 - (28 + len(js)) % 8) % 8)
+    body += b"\x00" * (-len(body) % 8)
+    return struct.pack("<4sIIIIII", b"pnts", 1, 28 + len(js) + len(body), len(js), len(body), 0, 0) + js + body
+
+
+@pytest.mark.parametrize("quantized", [False, True])
+def test_3dtiles_point_cloud_tiles(tmp_path, quantized):
+    """pnts content (LiDAR served as 3D Tiles): float or quantized positions about an RTC centre, the
+    tile transform applied, Z-up as stored (no glTF rotation), thinned to the spacing."""
+    from gis.geodesy import LocalFrame, R_ecef_enu
+    rng = np.random.default_rng(4)
+    e, n = rng.uniform(0, 40, (2, 20000))
+    p_tile = np.column_stack([e, n, np.where(e < 20, 0.0, 8.0)])  # a ground plane and an 8 m step, ENU metres
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "c.pnts").write_bytes(_pnts(p_tile, quantized, np.array([20.0, 20.0, 0.0])))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_ecef_enu(47.37, 8.54), geodetic_to_ecef(47.37, 8.54, 420.0)
+    (tmp_path / "tileset.json").write_text(json.dumps({"asset": {"version": "1.0"}, "geometricError": 10, "root": {
+        "boundingVolume": {"sphere": [0, 0, 0, 60]}, "geometricError": 0, "transform": T.T.reshape(-1).tolist(),
+        "content": {"uri": "t/c.pnts"}}}))
+    m = load_model(tmp_path, sample_spacing_m=1.0)
+    enu = LocalFrame(47.37, 8.54, 420.0).ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
+    low = enu[:, 0] < 20
+    assert np.allclose(enu[low, 2], 0.0, atol=0.01) and np.allclose(enu[~low, 2], 8.0, atol=0.01)
+    assert 0.0 <= enu[:, :2].min() and enu[:, :2].max() <= 40.0
+    assert 1400 < len(m) < 2 * 1700  # ~one per m² of 1600 m², a voxel holding both faces of the step edge or not
+    assert np.median(np.abs(m.normals_enu[:, 2])) > 0.99
+
+
 @pytest.mark.parametrize("refine,spacing_m,expect", [
     ("REPLACE", 1.0, "cubes"),   # 5 m of error is too coarse for 1 m sampling: the children replace the slab
     ("REPLACE", 8.0, "slab"),    # coarse sampling: the slab is fine enough, the children are not loaded
