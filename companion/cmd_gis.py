@@ -50,6 +50,8 @@ def gis_import(
     from gis.model import GisFormatError
 
     cfg = _gis_config(config)
+    if ground_h_msl_m is not None and ground_dem is not None:
+        fail("give --ground-h-msl-m or --ground-dem, not both")
     ground = cfg.footprint_ground if ground_h_msl_m is None and ground_dem is None else ground_dem or ground_h_msl_m
     try:
         model = load_model(path, cfg.sample_spacing_m, ground)
