@@ -219,8 +219,8 @@ def _transformer(wkt: str) -> Transformer:
             group = TransformerGroup(crs, "EPSG:4979", always_xy=True, allow_ballpark=False)
         grids = sorted({g.short_name for op in group.unavailable_operations for g in op.grids if not g.available})
         raise ValueError("PROJ has no exact transformation to WGS 84 heights on this machine" + (
-            f"; it needs the grid(s) {', '.join(grids)} (https://cdn.proj.org/, into {pyproj_datadir.get_user_data_dir()}, "
-            "e.g. `projsync --file NAME`)" if grids else " (none is known for this vertical datum: convert the file to "
+            f"; it needs the grid(s) {', '.join(grids)}: `pyproj sync --file NAME` (the venv's pyproj) downloads one from "
+            f"https://cdn.proj.org/ into {pyproj_datadir.get_user_data_dir()}" if grids else " (none is known for this vertical datum: convert the file to "
             "ellipsoidal or EGM96 heights first)")) from None
 
 
