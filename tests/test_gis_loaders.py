@@ -643,6 +643,9 @@ def test_3dtiles_uri_and_extension_errors_name_the_problem(tmp_path):
     ("x.osm.pbf", b"\x00\x00\x00\x0d\x0a\x09OSMHeader", "not a readable OSM file"),
     ("lone.b3dm", b"b3dm" + b"\x00" * 40, "tileset"),
     ("bad.tif", b"II*\x00" + b"\x07" * 60, "cannot read GeoTIFF"),
+    ("bad.npz", b"PK\x03\x04" + b"\x00" * 60, "not a GIS model .npz"),
+    ("bad.city.jsonl", b'{"type": "CityJSON", "metadata": {"referenceSystem": "EPSG:32632"}}\n'
+                       b'{"type": "CityJSONFeature", "CityObjects": {}, "vertices": [[1, 2]]}\n', "malformed CityJSON"),
 ])
 def test_corrupt_or_unsupported_files_fail_clearly(tmp_path, name, content, problem):
     path = tmp_path / name
