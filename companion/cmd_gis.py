@@ -101,6 +101,29 @@ def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE)
         typer.echo("(cache is empty)")
 
 
+@gis_app.command("rm")
+def gis_rm(
+    site: List[str] = typer.Argument(..., help="site id(s), as `terraslam gis ls` lists them"),
+    config: Optional[Path] = _CONFIG,
+    cache_dir: Optional[Path] = _CACHE,
+) -> None:
+    """Remove sites from the GIS cache (model, transforms, georeference evidence) and free their files."""
+    cache = _cache(config, cache_dir)
+
+    def known(s: str) -> bool:
+        try:
+            cache.model_file(s)
+            return True
+        except KeyError:
+            return False
+    missing = [s for s in site if not known(s)]
+    if missing:
+        fail(f"no site {', '.join(map(repr, missing))} in the GIS cache ({cache.root}); `terraslam gis ls` lists them")
+    for s in site:
+        freed = cache.remove(s)
+        typer.echo(f"removed site {s}" + (f", {freed / 1e6:.1f} MB freed" if freed else " (its model file is shared or gone)"))
+
+
 @gis_app.command("fetch")
 def gis_fetch(
     lat: float = typer.Option(..., "--lat", help="rough latitude, degrees WGS-84"),

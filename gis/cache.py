@@ -179,6 +179,25 @@ class GisCache:
                 best = (d, e)
         return None if best is None else best[1]
 
+    def remove(self, site_id: str) -> int:
+        """Forget a site: its model row, transforms, georeference evidence and imports; its model
+        file is deleted unless another site holds the same content. Returns the bytes freed.
+        KeyError if there is no such site. (A running service that mapped the file keeps its
+        pages: the file's inode lives until it unmaps it.)"""
+        row = self._row(site_id)
+        if row is None:
+            raise KeyError(f"no cached model for site {site_id!r}")
+        with self._db() as db:
+            for table in ("models", "transforms", "georef", "imports"):
+                db.execute(f"DELETE FROM {table} WHERE site_id=?", (site_id,))  # noqa: S608 (fixed table names)
+            shared = db.execute("SELECT COUNT(*) FROM models WHERE file=?", (row["file"],)).fetchone()[0]
+        path = self.root / "models" / row["file"]
+        if shared or not path.is_file():
+            return 0
+        size = path.stat().st_size
+        path.unlink()
+        return size
+
     def model_file(self, site_id: str) -> Path:
         """The cached model file of a site (an .npz ``gis.loaders.load_model`` reads too)."""
         row = self._row(site_id)

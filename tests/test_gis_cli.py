@@ -58,6 +58,16 @@ def test_gis_import_ls_fetch(tmp_path):
     assert r.returncode == 0, r.stderr
     r = _run("gis", "fetch", "--lat", str(lat + 1), "--lon", str(lon), "--source", str(tmp_path), "--cache-dir", str(cache))
     assert r.returncode != 0 and "no GIS model within 10000 m" in r.stderr
+    # rm: "near" holds the same content as "demo" (same file): forgetting it frees nothing; then demo frees the file
+    f = GisCache(cache).model_file("demo")
+    assert GisCache(cache).model_file("near") == f
+    r = _run("gis", "rm", "near", "atlantis", "--cache-dir", str(cache))
+    assert r.returncode != 0 and "no site 'atlantis'" in r.stderr and f.is_file()
+    r = _run("gis", "rm", "near", "--cache-dir", str(cache))
+    assert r.returncode == 0 and "shared" in r.stdout and f.is_file()
+    r = _run("gis", "rm", "demo", "--cache-dir", str(cache))
+    assert r.returncode == 0 and "MB freed" in r.stdout and not f.exists()
+    assert GisCache(cache).entries() == [] and GisCache(cache).load_georef("demo") is None
 
 
 def test_gis_import_and_align_offline_fail_clearly(tmp_path):
