@@ -28,6 +28,8 @@ from urllib.parse import parse_qsl, unquote, urlencode, urljoin, urlsplit, urlun
 
 import numpy as np
 import requests
+from requests.adapters import HTTPAdapter
+from urllib3.util.retry import Retry
 
 from gis.geodesy import LocalFrame, geodetic_to_ecef
 from gis.loaders import Ground, load_3dtiles, load_model, tileset_contents
@@ -35,6 +37,8 @@ from gis.model import GisFormatError, GisModel, merge_models
 
 log = logging.getLogger(__name__)
 DOWNLOAD_THREADS = 8  # tile contents fetched at once (CesiumJS allows 18 requests per server)
+RETRY = Retry(total=4, backoff_factor=0.5, status_forcelist=(429, 500, 502, 503, 504), allowed_methods=("GET",),
+              respect_retry_after_header=True)  # waits 0.5, 1, 2, 4 s (urllib3 2)
 
 
 class FetchError(RuntimeError):
@@ -82,6 +86,9 @@ class HttpTilesProvider:
         say = self.progress or (lambda line: None)
         name = _redacted(self.tileset_url.split("?")[0])
         with requests.Session() as http:  # one connection pool: keep-alive across hundreds of small tiles
+            # a busy or flaky server (429, 5xx, dropped connections) is asked again, backing off, before the fetch fails
+            http.mount("http://", HTTPAdapter(max_retries=RETRY, pool_maxsize=DOWNLOAD_THREADS))
+            http.mount("https://", HTTPAdapter(max_retries=RETRY, pool_maxsize=DOWNLOAD_THREADS))
             say(f"{name}: reading tilesets")
             local = self._download(http, self.tileset_url, np.eye(4), "REPLACE", centre, radius_m, 0, urls, tiles)
             new, done = 0, 0

@@ -201,6 +201,7 @@ def google_like_server(tmp_path):
              "content": {"uri": f"{base}far.glb"}}]}}
     session = ["s1"]
     seen: list[tuple[str, dict]] = []
+    flaked: list[str] = []
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def log_message(self, *a):
@@ -223,6 +224,9 @@ def google_like_server(tmp_path):
             elif u.path == base + "sub.json":
                 body = json.dumps(sub).encode()
             elif u.path.startswith(base) and u.path[len(base):] in files:
+                if u.path.endswith("mid_1.glb") and not flaked:  # one transient failure: asked again, then served
+                    flaked.append(u.path)
+                    return self.send_error(503, "busy")
                 body = files[u.path[len(base):]]
             else:
                 return self.send_error(404)
@@ -253,6 +257,7 @@ def test_http_tiles_provider_google_style_session_lod_and_draco(tmp_path, google
     assert not any("SECRET" in line for line in lines)
     got = {p.rsplit("/", 1)[-1] for p, q in seen}
     assert got == {"root.json", "sub.json", "mid_0.glb", "mid_1.glb"}, got
+    assert sum(p.endswith("mid_1.glb") for p, _ in seen) == 2  # the 503 was retried
     assert all(q.get("key") == "SECRET" for _, q in seen) and all(q.get("session") == "s1" for p, q in seen if "datasets" in p)
     enu = ORIGIN.ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
     assert np.ptp(enu[:, 2]) == pytest.approx(12.0, abs=0.1)  # Draco decoded, glTF Y is up
