@@ -113,7 +113,14 @@ class HttpTilesProvider:
             raise
 
     def _local_path(self, url: str) -> Path:
-        return self.download_dir / urlsplit(url).netloc.replace(":", "_") / unquote(urlsplit(url).path).lstrip("/")
+        """Where url is mirrored: download_dir/host/path. A path that would leave the folder once
+        decoded (``%2e%2e/`` from a hostile or broken server) is refused, not written."""
+        parts = urlsplit(url)
+        root = self.download_dir.resolve()
+        dst = (root / parts.netloc.replace(":", "_") / unquote(parts.path).lstrip("/")).resolve()
+        if not dst.is_relative_to(root) or dst == root:
+            raise FetchError(_redacted(f"{url}: the path leaves the download folder; refused"))
+        return dst
 
     def _get(self, http: requests.Session, url: str, urls: dict[Path, str], refresh: bool = False) -> tuple[Path, bool]:
         """(the mirrored file, whether it was downloaded now)."""

@@ -158,6 +158,9 @@ def test_http_tiles_provider_radius_cache_and_errors(tmp_path, tile_server):
     assert seen[n:] == ["/tileset.json?key=abc"]  # but for the top tileset (a server's session may have expired)
     with pytest.raises(FetchError, match="404"):
         HttpTilesProvider(f"{url}/missing.json", tmp_path / "dl2", timeout_s=5.0).fetch(47.3, 8.5, 100.0)
+    with pytest.raises(FetchError, match="leaves the download folder"):  # an encoded ../ never writes outside it
+        HttpTilesProvider(f"{url}/%2e%2e/%2e%2e/%2e%2e/escape.json", tmp_path / "dl4", timeout_s=5.0).fetch(47.3, 8.5, 100.0)
+    assert not (tmp_path / "escape.json").exists()
     with pytest.raises(FetchError, match="127.0.0.1:9"):
         HttpTilesProvider("http://127.0.0.1:9/tileset.json", tmp_path / "dl3", timeout_s=2.0).fetch(47.3, 8.5, 100.0)
 
