@@ -871,6 +871,8 @@ def tileset_contents(tile: dict, T_parent: np.ndarray, refine: str, max_geometri
     stops there, an ADD tile's on the way down too (its children add to it). External tilesets
     (.json content) are yielded for the caller to open and continue with the same rules; their
     root inherits T and refine. ``keep(tile, T)`` prunes whole subtrees (e.g. a fetch radius)."""
+    if "implicitTiling" in tile:
+        raise NotImplementedError("3D Tiles 1.1 implicit tiling (implicitTiling, subtree files) is not read")
     T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
     if not keep(tile, T):
         return
@@ -903,6 +905,8 @@ def _walk_tileset(path: Path, T_parent: np.ndarray, refine: str, spacing: float,
         raise GisFormatError(path, "tileset.json without 'root'")
     try:
         contents = list(tileset_contents(doc["root"], T_parent, refine, spacing))
+    except NotImplementedError as e:
+        raise GisFormatError(path, str(e)) from None
     except (AttributeError, KeyError, TypeError, ValueError) as e:  # a tile that is not a tile
         raise GisFormatError(path, f"malformed tile: {type(e).__name__}: {e}") from None
     for c in contents:

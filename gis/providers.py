@@ -151,6 +151,8 @@ class HttpTilesProvider:
             doc = json.loads(path.read_text())
             contents = list(tileset_contents(doc["root"], T_parent, refine, self.sample_spacing_m,
                                              keep=lambda tile, T: _near(tile.get("boundingVolume", {}), T, centre, radius_m)))
+        except NotImplementedError as e:
+            raise FetchError(_redacted(f"{url}: {e}")) from None
         except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
             path.unlink(missing_ok=True)
             raise FetchError(_redacted(f"{url}: not a 3D Tiles tileset ({type(e).__name__}: {e})")) from None

@@ -616,6 +616,12 @@ def test_3dtiles_uri_and_extension_errors_name_the_problem(tmp_path):
     ts.write_text(json.dumps(doc))
     with pytest.raises(GisFormatError, match="malformed tile"):
         load_model(ts)
+    doc["root"]["children"][0]["implicitTiling"] = {"subdivisionScheme": "QUADTREE", "subtreeLevels": 4,
+                                                   "availableLevels": 8, "subtrees": {"uri": "subtrees/{level}.{x}.{y}.subtree"}}
+    ts.write_text(json.dumps(doc))
+    with pytest.raises(GisFormatError, match="implicit tiling"):
+        load_model(ts)
+    del doc["root"]["children"][0]["implicitTiling"]
     # a glb that requires meshopt compression: trimesh would load zeros, so it is refused by name
     glb = tmp_path / "tiles" / "fine_0.glb"
     data = glb.read_bytes()
