@@ -927,15 +927,9 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
     if data[:4] == b"pnts":
         return _load_pnts(path, data, T_ecef_tile, spacing)
     if data[:4] == b"b3dm":
-        if len(data) < 28:
-            raise GisFormatError(path, "truncated b3dm header")
-        _, _, total, ft_json, ft_bin, bt_json, bt_bin = struct.unpack("<4sIIIIII", data[:28])
-        if total != len(data):
-            raise GisFormatError(path, f"b3dm byteLength {total} != file size {len(data)} (truncated?)")
-        if ft_json:
-            ft = json.loads(data[28 : 28 + ft_json].decode("utf-8").strip(" \x00") or "{}")
-            rtc = np.asarray(ft.get("RTC_CENTER", [0, 0, 0]), float)
-        data = data[28 + ft_json + ft_bin + bt_json + bt_bin :]
+        ft, _, end = _tile_feature_table(path, data, "b3dm")
+        rtc = np.asarray(ft.get("RTC_CENTER", [0, 0, 0]), float)
+        data = data[end:]
     if data[:4] != b"glTF":
         raise GisFormatError(path, f"tile content is neither b3dm, pnts nor glb ({data[:4]!r}: i3dm / cmpt are not read)")
     gltf_json = _glb_json(path, data)
@@ -956,19 +950,32 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
     return model_from_ecef(p_ecef, n @ R.T, np.full(len(p), UNCLASSIFIED, np.uint8), "EPSG:4978", path)
 
 
+def _tile_feature_table(path: Path, data: bytes, kind: str) -> tuple[dict, bytes, int]:
+    """(feature table JSON, its binary body, where the tile's payload starts) of a 3D Tiles 1.0 tile
+    (b3dm, pnts: a 28-byte header magic, version, byteLength, then the feature and batch tables'
+    JSON and binary lengths)."""
+    if len(data) < 28:
+        raise GisFormatError(path, f"truncated {kind} header")
+    _, _, total, ft_json, ft_bin, bt_json, bt_bin = struct.unpack("<4sIIIIII", data[:28])
+    end = 28 + ft_json + ft_bin + bt_json + bt_bin
+    if total != len(data) or end > len(data):
+        raise GisFormatError(path, f"{kind} byteLength {total} != file size {len(data)} (truncated?)")
+    try:
+        ft = json.loads(data[28:28 + ft_json].decode("utf-8").strip(" \x00") or "{}")
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise GisFormatError(path, f"cannot parse {kind} feature table: {e}") from None
+    if not isinstance(ft, dict):
+        raise GisFormatError(path, f"{kind} feature table is not a JSON object")
+    return ft, data[28 + ft_json:28 + ft_json + ft_bin], end
+
+
 def _load_pnts(path: Path, data: bytes, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
     """A point cloud tile (3D Tiles 1.0 pnts: feature table POSITION float32 or POSITION_QUANTIZED
     uint16 with QUANTIZED_VOLUME_OFFSET / _SCALE, RTC_CENTER; tile coordinates are Z-up, no glTF
     rotation), thinned to one point per spacing voxel; normals estimated (a feature-table NORMAL is
     not trusted to face up). Draco-compressed pnts are refused by name."""
-    if len(data) < 28:
-        raise GisFormatError(path, "truncated pnts header")
-    _, _, total, ft_json, ft_bin, _, _ = struct.unpack("<4sIIIIII", data[:28])
-    if total != len(data) or 28 + ft_json + ft_bin > len(data):
-        raise GisFormatError(path, f"pnts byteLength {total} != file size {len(data)} (truncated?)")
+    ft, body, _ = _tile_feature_table(path, data, "pnts")
     try:
-        ft = json.loads(data[28:28 + ft_json].decode("utf-8").strip(" \x00") or "{}")
-        body = data[28 + ft_json:28 + ft_json + ft_bin]
         n = int(ft["POINTS_LENGTH"])
         if "3DTILES_draco_point_compression" in (ft.get("extensions") or {}):
             raise GisFormatError(path, "Draco-compressed point cloud tile (3DTILES_draco_point_compression) is not read")
@@ -980,7 +987,7 @@ def _load_pnts(path: Path, data: bytes, T_ecef_tile: np.ndarray, spacing: float)
         p = p + np.asarray(ft.get("RTC_CENTER", [0.0, 0.0, 0.0]), float)
     except GisFormatError:
         raise
-    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as e:  # json, frombuffer beyond the body, shapes
+    except (KeyError, TypeError, ValueError) as e:  # frombuffer beyond the body, shapes
         raise GisFormatError(path, f"cannot parse pnts feature table: {type(e).__name__}: {e}") from None
     p_ecef = p @ T_ecef_tile[:3, :3].T + T_ecef_tile[:3, 3]
     p_ecef = p_ecef[first_per_voxel(p_ecef, spacing)]
