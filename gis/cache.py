@@ -106,8 +106,7 @@ class GisCache:
         """Store T_rough or (replacing the previous) the latest T_fine of a site."""
         if kind not in KINDS:
             raise ValueError(f"transform kind must be one of {KINDS}, got {kind!r}")
-        if self._row(site_id) is None:
-            raise KeyError(f"no cached model for site {site_id!r}")
+        self._site(site_id)
         mj = json.dumps(T_ecef_slam.matrix().tolist())
         meta_j = json.dumps(meta or {}, sort_keys=True, default=str)
         with self._db() as db:
@@ -117,8 +116,7 @@ class GisCache:
     def save_georef(self, site_id: str, evidence: GeorefEvidence) -> None:
         """Store (replacing the previous) the evidence on the site model's georeference, all flights
         so far (gis.align.georef): the next flight at the site starts from it."""
-        if self._row(site_id) is None:
-            raise KeyError(f"no cached model for site {site_id!r}")
+        self._site(site_id)
         j = json.dumps({"info": evidence.info.tolist(), "info_d": evidence.info_d.tolist(),
                         "dWd": evidence.dWd, "n": evidence.n}, sort_keys=True)
         with self._db() as db:
@@ -141,10 +139,8 @@ class GisCache:
 
     # --- load / Pre-fetch --------------------------------------------------------------------
     def load_model(self, site_id: str) -> GisModel:
-        row = self._row(site_id)
-        if row is None:
-            raise KeyError(f"no cached model for site {site_id!r}")
-        path = self.root / "models" / row["file"]
+        row = self._site(site_id)
+        path = self._file(row)
         if not path.is_file():
             raise CacheCorrupt(f"site {site_id!r}: model file {path} is missing")
         if _sha256_file(path) != row["sha256"]:
@@ -184,14 +180,12 @@ class GisCache:
         file is deleted unless another site holds the same content. Returns the bytes freed.
         KeyError if there is no such site. (A running service that mapped the file keeps its
         pages: the file's inode lives until it unmaps it.)"""
-        row = self._row(site_id)
-        if row is None:
-            raise KeyError(f"no cached model for site {site_id!r}")
+        row = self._site(site_id)
         with self._db() as db:
             for table in ("models", "transforms", "georef", "imports"):
                 db.execute(f"DELETE FROM {table} WHERE site_id=?", (site_id,))  # noqa: S608 (fixed table names)
             shared = db.execute("SELECT COUNT(*) FROM models WHERE file=?", (row["file"],)).fetchone()[0]
-        path = self.root / "models" / row["file"]
+        path = self._file(row)
         if shared or not path.is_file():
             return 0
         size = path.stat().st_size
@@ -200,9 +194,16 @@ class GisCache:
 
     def model_file(self, site_id: str) -> Path:
         """The cached model file of a site (an .npz ``gis.loaders.load_model`` reads too)."""
+        return self._file(self._site(site_id))
+
+    def _site(self, site_id: str) -> sqlite3.Row:
+        """The model row of a site; KeyError when there is none."""
         row = self._row(site_id)
         if row is None:
             raise KeyError(f"no cached model for site {site_id!r}")
+        return row
+
+    def _file(self, row: sqlite3.Row) -> Path:
         return self.root / "models" / row["file"]
 
     def _row(self, site_id: str):
@@ -216,7 +217,7 @@ class GisCache:
         meta = {k: t[1] for k, t in (("rough", rough), ("fine", fine)) if t}
         return CacheEntry(
             r["site_id"], LocalFrame(r["lat0_deg"], r["lon0_deg"], r["h0_ellipsoid_m"]), r["radius_m"],
-            self.root / "models" / r["file"], r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
+            self._file(r), r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
             rough[0] if rough else None, fine[0] if fine else None, meta, self.load_georef(r["site_id"]),
         )
 
