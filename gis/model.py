@@ -105,11 +105,13 @@ class GisModel:
     def sorted_by_cell(self) -> "GisModel":
         """The same model with its points stored cell by cell (row-major over the grid index),
         which makes its index free of per-point arrays; self if they are already."""
-        order = self._grid[0]
+        order, offsets, lo, ncol = self._grid
         if order is None:
             return self
-        return GisModel(self.points_enu[order], self.normals_enu[order], self.labels[order], self.origin,
-                        self.source_crs, self.source_path)
+        m = GisModel(self.points_enu[order], self.normals_enu[order], self.labels[order], self.origin,
+                     self.source_crs, self.source_path)
+        m.__dict__["_grid"] = (None, offsets, lo, ncol)  # the same cells, now in order (cached_property's slot)
+        return m
 
     def crop(self, center_enu: np.ndarray, size_m: float) -> np.ndarray:
         """Indices of points inside the horizontal square of side size_m centred at center_enu (any height)."""

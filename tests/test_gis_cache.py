@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from gis.cache import CacheCorrupt, GisCache
 from gis.geodesy import LocalFrame, R_ecef_enu, geodetic_to_ecef
+from gis.model import GisModel
 from gis.providers import FetchError, HttpTilesProvider, LocalProvider, fetch_model
 from gis.sim3 import Sim3
 from gis.synthetic import box_city_model
@@ -40,6 +41,9 @@ def test_cache_round_trip_prefetch_and_hash_checks(tmp_path, model):
     m2 = cache2.load_model(site)
     stored = model.sorted_by_cell  # the cache keeps the points cell by cell of the crop index
     assert stored is not model and sorted(map(tuple, stored.points_enu)) == sorted(map(tuple, model.points_enu))
+    fresh = GisModel(stored.points_enu, stored.normals_enu, stored.labels, stored.origin, "", "x")  # its index, built anew
+    assert fresh._grid[0] is None and all(np.array_equal(a, b) for a, b in zip(fresh._grid[1:3], stored._grid[1:3]))
+    assert fresh._grid[3] == stored._grid[3]
     np.testing.assert_array_equal(m2.points_enu, stored.points_enu)
     np.testing.assert_array_equal(m2.normals_enu, stored.normals_enu)
     np.testing.assert_array_equal(m2.labels, stored.labels)
