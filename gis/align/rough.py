@@ -54,6 +54,16 @@ class Building:
 
 
 @dataclass(frozen=True)
+class StartPrior:
+    """Where the survey started: its first camera centre in the survey cloud's frame and, roughly
+    (the dataset's ``rough_position``), in the GIS model's ENU frame, metres, with its 1-σ."""
+
+    p_slam: np.ndarray
+    p_enu: np.ndarray
+    sigma_m: float
+
+
+@dataclass(frozen=True)
 class RoughResult:
     T_ecef_slam: Sim3
     n_inliers: int           # corner correspondences supporting it
@@ -102,8 +112,14 @@ def level_and_segment(p: np.ndarray, unit: float, ground: np.ndarray | None = No
 
 def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray, radius_m: float = 250.0,
                 top_k: int = 3, progress: Callable[[str], None] | None = None, refine: bool = True,
-                score_m: float = 1.5, min_score: float = 0.5) -> RoughResult:
-    """T_rough mapping the survey cloud (SLAM frame) to ECEF; RoughAlignmentFailed if none fits."""
+                score_m: float = 1.5, min_score: float = 0.5, start: StartPrior | None = None,
+                distinct_m: float = 10.0, max_runner_up: float = 0.9) -> RoughResult:
+    """T_rough mapping the survey cloud (SLAM frame) to ECEF; RoughAlignmentFailed if none fits,
+    or if the fit is not unique: a placement of the cloud at least ``distinct_m`` away (its
+    centroid) scoring ``max_runner_up`` × the best or more (a regular block of buildings fits in
+    several places, and a wrong T_rough would be flown with confidence). ``start``: where the
+    survey started, in both frames (dataset ``rough_position``); placements that put the survey's
+    first camera more than 3σ + ``distinct_m`` from it are not considered."""
     say = progress or (lambda s: log.info(s))
     p_s = np.asarray(cloud_slam, float)
     p_s = p_s[np.all(np.isfinite(p_s), axis=1)]
@@ -134,7 +150,10 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
     q_s = q_s[q_s[:, 2] > 3 * unit_s]  # structures only: ground lands on ground in any hypothesis
     sample_s = q_s[:: max(1, len(q_s) // 500)]
     tree_g = cKDTree(T_lev_g.apply(p_g))
-    best = None
+    start_lev = None if start is None else (T_lev_s.apply(np.asarray(start.p_slam, float)[None])[0],
+                                            T_lev_g.apply(np.asarray(start.p_enu, float)[None])[0],
+                                            3 * start.sigma_m + distinct_m)
+    hyps: list[tuple[float, Sim3, Building]] = []
     say(f"RANSAC over {min(top_k, len(b_s))}×{len(b_g)} building pairs × {4 + len(YAW_GRID_RAD)} yaws")
     for bs in b_s[:top_k]:
         for bg in b_g:
@@ -148,11 +167,14 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
                 Rz = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
                 t = bg.centroid - s * Rz @ bs.centroid
                 T = Sim3(s, Rz, t)
-                score = float(np.mean(tree_g.query(T.apply(sample_s), distance_upper_bound=score_m)[0] < score_m))
-                if best is None or score > best[3]:
-                    best = (T, 0, float("nan"), score, bg)
-    if best is None:
-        raise RoughAlignmentFailed("no building pair had a consistent height/footprint ratio")
+                if start_lev is not None and np.linalg.norm((T.apply(start_lev[0]) - start_lev[1])[:2]) > start_lev[2]:
+                    continue
+                hyps.append((float(np.mean(tree_g.query(T.apply(sample_s), distance_upper_bound=score_m)[0] < score_m)), T, bg))
+    if not hyps:
+        raise RoughAlignmentFailed("no building pair had a consistent height/footprint ratio"
+                                   + ("" if start is None else " with the survey's start near the rough position"))
+    score, T, bg = max(hyps, key=lambda h: h[0])
+    best = (T, 0, float("nan"), score, bg)
     # Eq. 2 on nearest corners from the best hypothesis; kept if more of the cloud lands on the model
     T_ref, n_in, rmse = _refine_on_corners(best[0], corners_s, corners_g, tree, thresh=max(2.0, 0.15 * np.sqrt(best[4].area)))
     if T_ref is not None and n_in >= 4:
@@ -163,6 +185,17 @@ def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray,
     say(f"best hypothesis: {100 * score:.0f} % of the survey structures within {score_m} m of the model")
     if score < min_score:
         raise RoughAlignmentFailed(f"best hypothesis puts only {100 * score:.0f} % of the survey structures on the model (< {100 * min_score:.0f} %)")
+    c_s = q_s.mean(axis=0)
+    c_best = T_levg_levs.apply(c_s)
+    others = [(h[0], float(np.linalg.norm(h[1].apply(c_s) - c_best))) for h in hyps]
+    rival = max((o for o in others if o[1] > distinct_m), default=None)
+    if rival is not None and rival[0] >= max_runner_up * score:
+        raise RoughAlignmentFailed(
+            f"ambiguous: a placement {rival[1]:.0f} m away puts {100 * rival[0]:.0f} % of the survey structures on the model, "
+            f"the best {100 * score:.0f} % (a regular block fits in several places; survey a larger or more distinctive area"
+            + ("" if start is not None else ", or give the survey's start position") + ")")
+    say(f"unique: the best placement more than {distinct_m:g} m away scores "
+        f"{'-' if rival is None else f'{100 * rival[0]:.0f} %'}")
     # T_enu_slam = T_levg⁻¹ ∘ T_levg_levs ∘ T_levs
     T_enu_slam = compose(compose(T_lev_g.inverse(), T_levg_levs), T_lev_s)
     T_ecef_slam = compose(enu_sim3(model.origin), T_enu_slam)
