@@ -176,6 +176,17 @@ class SlamMap:
     def kf_ids(self) -> list[int]:
         return sorted(self.keyframes)
 
+    def covisible(self, point_ids, top: int) -> list[int]:
+        """Up to ``top`` keyframes observing the most of ``point_ids`` (ORB-SLAM's covisibility,
+        from the points' observations), most shared first. Caller holds the lock."""
+        counts: dict[int, int] = {}
+        for p in np.asarray(point_ids, np.int64).tolist():
+            mp = self.points.get(p)
+            if mp is not None:
+                for k in mp.obs:
+                    counts[k] = counts.get(k, 0) + 1
+        return [k for k, _ in sorted(counts.items(), key=lambda kv: (-kv[1], -kv[0]))[:top] if k in self.keyframes]
+
     def local_map(self, kf_ids: list[int], version: int) -> LocalMap:
         ids: set[int] = set()
         for k in kf_ids:

@@ -173,11 +173,21 @@ def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baselin
     errors of ~5–10 %, and they carried the map's scale 4–8 % off through each turn (the error after
     a GNSS loss doubled; docs/BENCHMARKS.md). ORB-SLAM skips neighbours under 1 % of the depth
     (LocalMapping::CreateNewMapPoints); ours needs more because the turn keyframes are dense.
-    ``ids`` is the map's keyframe ids in order, kf's last. Call with m.lock held."""
+    ``ids`` is the map's keyframe ids in order, kf's last. Call with m.lock held.
+
+    Only earlier keyframes that share a point with kf qualify (when kf's points are seen by any):
+    a view of another place, which the baseline rule would prefer for its length, only triangulates
+    chance descriptor matches. After a relocalisation into an older part of the map (a resumed or
+    survey map) none of the newest keyframes does; the keyframes that share the most points with
+    kf (``SlamMap.covisible``) are the earlier ones then."""
     earlier = ids[-TRIANGULATION_LOOKBACK - 1:-1]
+    pids = [p for p in kf.point_ids.tolist() if p >= 0 and p in m.points]
+    seen = {k for p in pids for k in m.points[p].obs} - {kf.kf_id}
+    if seen:
+        earlier = ([k for k in earlier if k in seen]
+                   or sorted(k for k in m.covisible(pids, TRIANGULATION_LOOKBACK + 1) if k != kf.kf_id))
     if min_baseline_ratio <= 0:
         return earlier[-2:]
-    pids = [p for p in kf.point_ids.tolist() if p >= 0 and p in m.points]
     if len(pids) < 10:  # no depth to compare with
         return earlier[-2:]
     P = np.array([m.points[p].p_slam for p in pids])
@@ -202,6 +212,11 @@ class LocalMapper:
             self._place = place_index_of([slam_map.keyframes[k] for k in slam_map.kf_ids()])
         shared.place = (slam_map, self._place)
         self._anchors: list[int] = []  # loop anchors: old keyframes kept with features (see _forget_old)
+        # A map loaded from disk (a restart, a survey map) is the reference its saved alignment
+        # registers: its keyframes (ids up to this) are held in every BA, and as the camera may be
+        # anywhere in it, a keyframe's neighbourhood is its covisible keyframes, not the newest
+        # ones (_neighbourhood). -1: a map this process started.
+        self._loaded_upto = max(slam_map.keyframes, default=-1)
         self._retired_upto = -1  # keyframes with ids up to this one have left the active window
         self._n_retired = 0
         self._ba = ba_worker()
@@ -260,6 +275,7 @@ class LocalMapper:
                     self._place = PlaceIndex()
                     self.shared.place = (item.new_map, self._place)
                     self._anchors, self._retired_upto, self._n_retired = [], -1, 0
+                    self._loaded_upto = -1
                     self.reset_counter += 1
                 else:
                     self._process(item)
@@ -278,7 +294,7 @@ class LocalMapper:
             for i, pid in enumerate(kf.point_ids.tolist()):  # freshest appearance for matching
                 if pid >= 0:
                     m.points[pid].desc = kf.desc[i].copy()  # a row view would keep kf.desc alive
-            ids = m.kf_ids()
+            ids = self._neighbourhood(kf, m.kf_ids()) if self._loaded_upto >= 0 else m.kf_ids()
         self._finish_ba(wait=False)
         self._triangulate(kf, ids)
         self._cull(kf, ids)
@@ -291,6 +307,25 @@ class LocalMapper:
         self._forget_old()
 
     # --- local mapping --------------------------------------------------------------------------
+    def _neighbourhood(self, kf: Keyframe, ids: list[int]) -> list[int]:
+        """The keyframes (in id order, kf last) that share the most points with ``kf``: its window
+        for triangulation, local BA and the tracker's local map in a map loaded from disk. There the
+        newest keyframes can be a survey's far end, and a local BA over them with kf would leave kf
+        and the points it shares with the old keyframes around it without anchor (they are only
+        the fixed border, chosen by id nearness), so the pose jumped metres at each keyframe
+        (ORB-SLAM's local mapping is covisibility-based for this reason). Call with m.lock held."""
+        m, c = self.map, self.config
+        top = max(c.local_window, c.periodic_ba_window, c.local_map_keyframes, TRIANGULATION_LOOKBACK + 1)
+        near = set(m.covisible(kf.point_ids[kf.point_ids >= 0], top)) | {kf.kf_id}
+        # and the loaded keyframes nearest to kf: the new keyframes observe fewer of the loaded
+        # points each time (new points are triangulated beside them), so covisibility alone lets
+        # the loaded map fall out of the tracker's local map and the pose drift off it
+        loaded = [k for k in ids if k <= self._loaded_upto]
+        if loaded:
+            d = np.linalg.norm(np.array([m.keyframes[k].center for k in loaded]) - kf.center, axis=1)
+            near.update(loaded[i] for i in np.argsort(d)[:c.local_map_keyframes])
+        return [k for k in ids if k in near]
+
     def _triangulate(self, kf: Keyframe, ids: list[int]) -> None:
         """New points from the new keyframe's unmatched features and those of up to 2 earlier
         keyframes with enough baseline (triangulation_partners)."""
@@ -411,7 +446,7 @@ class LocalMapper:
             # line 1) gets anchors at both ends instead of a free-floating old end
             fixed_ids = sorted(sorted(border, key=lambda k: (min(abs(k - w) for w in win), -k))[:max_fixed])
             all_ids = fixed_ids + kf_ids
-            fixed = np.array([k in fixed_ids for k in all_ids])
+            fixed = np.array([k in fixed_ids or k <= self._loaded_upto for k in all_ids])
             if fixed.sum() < 2:  # gauge: monocular BA needs >= 2 held poses (7 DoF)
                 fixed[: 2] = True
             pose_idx = {k: i for i, k in enumerate(all_ids)}
@@ -448,17 +483,27 @@ class LocalMapper:
                 m.remove_observation(pids[o_pt[b]], all_ids[o_pose[b]])
         self._changed = pids
 
-    def _publish_local_map(self, ids: list[int]) -> None:
+    def _publish_local_map(self, ids: list[int], kf: Keyframe | None = None) -> None:
+        """The tracker's local map: the newest ``local_map_keyframes`` keyframes and, with ``kf``,
+        the keyframes that share the most points with it. In a flight these are the newest ones
+        anyway; after a relocalisation into an older part of the map (a resumed or survey map),
+        they are the old keyframes there, so tracking goes on against the map it found instead of
+        only the points it triangulates anew (map reuse)."""
         if self.shared.active_map is not self.map:
             return  # the tracker has already reset to a new map
+        n = self.config.local_map_keyframes
         with self.map.lock:
+            local = ids if self._loaded_upto >= 0 else ids[-n:]  # a loaded map's: the neighbourhood
+            if kf is not None:
+                newest = set(local)
+                local = [k for k in self.map.covisible(kf.point_ids[kf.point_ids >= 0], n) if k not in newest] + local
             self._lm_version += 1
-            self.shared.local_map = self.map.local_map(ids[-self.config.local_map_keyframes:], self._lm_version)
+            self.shared.local_map = self.map.local_map(local, self._lm_version)
 
     def _publish(self, ids: list[int], kf: Keyframe) -> None:
         m = self.map
         c = self.config
-        self._publish_local_map(ids)
+        self._publish_local_map(ids, kf)
         with m.lock:
             upd_ids = [p for p in getattr(self, "_changed", []) if p in m.points]
             upd_ids += [int(p) for p in kf.point_ids if p >= 0 and p in m.points]

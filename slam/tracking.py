@@ -312,6 +312,9 @@ class Tracker:
                     if est is None or len(est.inlier_pid) < c.reloc_min_inliers:
                         est = self._match_and_solve(feats, lm, sol[0], c.search_radius_px, cKDTree(feats.uv_px))
                     if est is not None and len(est.inlier_pid) >= c.reloc_min_inliers:
+                        with self.map.lock:  # track on against the map found here until mapping publishes
+                            near = self.map.covisible(est.inlier_pid, c.local_map_keyframes)
+                            self.shared.local_map = self.map.local_map(near, -1)
                         self._reloc_map = None
                         self._reloc_timeout_s = self._reloc_deadline_t_s = None
                         self.T_vel = np.eye(4)

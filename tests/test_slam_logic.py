@@ -432,3 +432,25 @@ def test_feature_timing_runs_each_extractor_on_a_saved_sequence(tmp_path, capsys
     rows = [line for line in out.splitlines() if "features/frame" in line]
     assert len(rows) == 2 and "OpenCV ORB (cpu)" in rows[0] and "torch patch-parallel (cpu)" in rows[1]
     assert all(float(r.split("features/frame")[1]) > 100 for r in rows)
+
+
+def test_triangulation_partners_after_a_relocalisation_are_the_keyframes_that_share_its_points():
+    """Relocalised into an older part of a loaded map: the newest keyframes are elsewhere and share
+    nothing with the new keyframe; its partners are the old keyframes that see its points (views
+    of another place would only triangulate chance matches)."""
+    from slam.map import Keyframe, SlamMap
+    from slam.mapping import triangulation_partners
+
+    m = SlamMap()
+    n_pts = 12
+    for x_m in [0.0, 10.0, 20.0, 500.0, 510.0, 520.0, 12.0]:  # old part, the far end, then back at 12 m
+        m.add_keyframe(Keyframe(m.new_kf_id(), x_m, int(x_m), make_T(np.eye(3), -np.array([x_m, 0.0, 0.0])),
+                                np.zeros((n_pts, 2)), np.zeros((n_pts, 32), np.uint8), np.full(n_pts, -1, np.int64)))
+    ids = sorted(m.keyframes)
+    for i in range(n_pts):  # points 100 m below the old part, seen by its keyframes and the new one
+        m.add_point(np.array([5.0 * (i % 4), 5.0 * (i // 4), 100.0]), np.zeros(32), {ids[0]: i, ids[1]: i, ids[2]: i, ids[-1]: i})
+    kf = m.keyframes[ids[-1]]
+    kf.point_ids[:] = np.arange(n_pts)
+    assert m.covisible(kf.point_ids, 3) == [ids[-1], ids[2], ids[1]]  # most shared, then newest first
+    assert triangulation_partners(m, kf, ids, 0.05) == [ids[2], ids[0]]  # 8 m and 12 m away (not 2 m), not 490 m
+    assert triangulation_partners(m, kf, ids, 0.0) == ids[1:3]
