@@ -163,53 +163,40 @@ def gis_fetch(
 @app.command("align-offline")
 def align_offline(
     dataset: Path = typer.Argument(..., help="dataset directory (docs/DATASET.md) of the survey flight"),
-    cloud: Optional[Path] = typer.Option(None, "--cloud", help="dense survey cloud in the SLAM frame (PLY); default: COLMAP SfM on the dataset frames"),
-    stride: int = typer.Option(4, "--stride", min=1, help="use every n-th frame for the COLMAP reconstruction"),
+    cloud: Optional[Path] = typer.Option(None, "--cloud", help="dense survey cloud (PLY) to compute T_rough for, in its own frame; no survey map is made"),
+    stride: int = typer.Option(4, "--stride", min=1, help="use every n-th frame (and every SLAM keyframe) for the COLMAP reconstruction"),
     radius_m: float = typer.Option(250.0, "--radius-m", help="GIS search radius around the rough position"),
+    sigma_m: float = typer.Option(1.5, "--sigma-m", min=0.1, max=50.0, help="1-σ (m) of T_rough's position that the service claims when it starts in the survey map (fine-tuning replaces it)"),
     site: Optional[str] = typer.Option(None, "--site", help="site id (default: the dataset name)"),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:
     """Compute T_rough for a site from a survey (TerraSLAM §4.3) and store it in the GIS cache.
 
-    Without --cloud, the survey cloud is a COLMAP (pycolmap) SfM reconstruction of the dataset's
-    frames (minutes); it is written to DATASET/survey_cloud.ply. T_rough then maps that
-    reconstruction's frame to ECEF.
+    Without --cloud: our SLAM maps the survey frames (the survey map), COLMAP (pycolmap) SfM
+    reconstructs every --stride-th frame and the SLAM keyframes (minutes; the cloud is written to
+    DATASET/survey_cloud.ply), T_rough is found on that cloud and carried into the survey map's frame
+    through the keyframes' camera centres. The survey map and its T_rough go into the cache: the
+    service (gis.site) starts in it and gives fixes without GNSS once it relocalises there.
     """
+    import tempfile
+
     import numpy as np
     import open3d as o3d
     from rich.console import Console
 
     from companion.dataset import DatasetError, read_dataset
-    from gis.align.rough import RoughAlignmentFailed, rough_align
+    from gis.align.rough import RoughAlignmentFailed, StartPrior, rough_align
     from gis.loaders import load_model
     from gis.model import GisFormatError
 
     console = Console(stderr=True)
-    cfg = _gis_config(config)
+    app_cfg = _app_config(config)
+    cfg = app_cfg.gis
     try:
         ds = read_dataset(dataset)
     except DatasetError as e:
         fail(str(e))
-    if cloud is None:
-        from gis.align.survey import SurveyReconstructionFailed, reconstruct_survey
-
-        if ds.camera.is_distorted:
-            fail(f"{dataset}: COLMAP here assumes undistorted frames; undistort them or pass --cloud")
-        names = [p.name for p in ds.frame_paths][::stride]
-        with console.status("COLMAP survey reconstruction") as status:
-            try:
-                survey = reconstruct_survey(ds.frame_paths[0].parent, names, ds.camera.K, dataset / "colmap",
-                                            progress=lambda s: (status.update(s), console.print(s)))
-            except SurveyReconstructionFailed as e:
-                fail(f"{dataset}: {e}")
-        cloud = dataset / "survey_cloud.ply"
-        o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(survey.points)))
-        p_slam = survey.points
-    else:
-        p_slam = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
-        if len(p_slam) == 0:
-            fail(f"{cloud}: no points could be read")
     model, errors = None, []
     for f in ds.gis_files:
         try:
@@ -222,16 +209,74 @@ def align_offline(
         fail("no loadable GIS model in the dataset: " + "; ".join(errors or ["site.yaml lists none"]))
     rp = ds.rough_position
     center = model.origin.geodetic_to_enu(rp.lat_deg, rp.lon_deg, rp.h_ellipsoid_m)
-    with console.status("offline alignment") as status:
-        try:
-            res = rough_align(p_slam, model, center, radius_m + rp.sigma_m, progress=lambda s: (status.update(s), console.print(s)))
-        except RoughAlignmentFailed as e:
-            fail(f"{dataset}: {e}")
-    cache = _cache(config, cache_dir)
-    site_id = cache.save_model(model, site or ds.name)
-    cache.save_transform(site_id, "rough", res.T_ecef_slam, {
-        "dataset": str(dataset), "cloud": str(cloud), "error_m": res.error_m, "corner_inliers": res.n_inliers,
-        "corner_rmse_m": res.corner_rmse_m,
-    })
+    sm = start = None
+    if cloud is None:
+        from companion.survey import SurveyMappingFailed, map_survey
+        from gis.align.survey import SurveyReconstructionFailed, reconstruct_survey
+
+        if ds.camera.is_distorted:
+            fail(f"{dataset}: COLMAP here assumes undistorted frames; undistort them or pass --cloud")
+        with console.status("SLAM survey map") as status:
+            try:
+                sm = map_survey(ds.camera, ds.steps(), [p.name for p in ds.frame_paths], app_cfg.slam,
+                                progress=lambda k, n: status.update(f"SLAM survey map: frame {k}/{n}"))
+            except SurveyMappingFailed as e:
+                fail(f"{dataset}: {e}")
+        console.print(f"survey map: {len(sm.keyframe_centres)} keyframes, {100 * sm.tracking_ratio:.0f} % of frames tracked")
+        names = sorted({p.name for p in ds.frame_paths[::stride]} | set(sm.keyframe_centres),
+                       key=[p.name for p in ds.frame_paths].index)
+        with console.status("COLMAP survey reconstruction") as status:
+            try:
+                survey = reconstruct_survey(ds.frame_paths[0].parent, names, ds.camera.K, dataset / "colmap",
+                                            progress=lambda s: (status.update(s), console.print(s)))
+            except SurveyReconstructionFailed as e:
+                sm.close()
+                fail(f"{dataset}: {e}")
+        cloud = dataset / "survey_cloud.ply"
+        o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(survey.points)))
+        p_slam = survey.points
+        first = next(n for n in names if n in survey.camera_centers)  # the survey's start: near the rough position
+        start = StartPrior(survey.camera_centers[first], center, rp.sigma_m)
+    else:
+        p_slam = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
+        if len(p_slam) == 0:
+            fail(f"{cloud}: no points could be read")
+    try:
+        with console.status("offline alignment") as status:
+            try:
+                res = rough_align(p_slam, model, center, radius_m + rp.sigma_m, start=start,
+                                  progress=lambda s: (status.update(s), console.print(s)))
+            except RoughAlignmentFailed as e:
+                fail(f"{dataset}: {e}")
+        cache = _cache(config, cache_dir)
+        site_id = cache.save_model(model, site or ds.name)
+        meta = {"dataset": str(dataset), "cloud": str(cloud), "error_m": res.error_m, "corner_inliers": res.n_inliers,
+                "corner_rmse_m": res.corner_rmse_m, "frame": "the survey cloud's"}
+        T_rough = res.T_ecef_slam
+        if sm is not None:
+            from companion.survey import save_survey_map, survey_alignment
+            from gis.align.survey import SurveyRegistrationFailed, register_centres
+            from gis.sim3 import compose
+
+            try:
+                reg = register_centres(sm.keyframe_centres, survey.camera_centers)
+            except SurveyRegistrationFailed as e:
+                fail(f"{dataset}: {e}")
+            T_rough = compose(res.T_ecef_slam, reg.T_dst_src)
+            a = survey_alignment(sm, T_rough, sigma_m)
+            with tempfile.TemporaryDirectory(dir=cache.root) as tmp:
+                saved = save_survey_map(sm, Path(tmp) / "survey_map.npz", a, site_id)
+                cached = cache.save_survey_map(site_id, saved.path)
+            meta.update(frame=f"survey map {a.map_id}", survey_map=cached.name, keyframes_registered=reg.n_pairs,
+                        centres_rmse_rel=reg.rmse_rel, sigma_m=sigma_m)
+            console.print(f"survey map ({saved.n_keyframes} keyframes, {saved.n_points} points, {saved.n_bytes / 1e6:.1f} MB) "
+                          f"registered to the reconstruction on {reg.n_pairs} keyframes "
+                          f"(residual {100 * reg.rmse_rel:.2f} % of the track)")
+        cache.save_transform(site_id, "rough", T_rough, meta)
+    finally:
+        if sm is not None:
+            sm.close()
     typer.echo(f"T_rough stored for site {site_id}: mean point-to-model error {res.error_m:.3f} m, "
-               f"scale {res.T_ecef_slam.scale:.5g}, {res.n_inliers} corner inliers")
+               f"scale {T_rough.scale:.5g}, {res.n_inliers} corner inliers"
+               + ("; the service starts in its survey map without GNSS" if sm is not None
+                  else "; it maps the given cloud's frame only (no survey map)"))

@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,7 @@ from slam.types import CameraModel
 log = logging.getLogger("terraslam.persistence")
 
 MAP_FILE = "slam_map.npz"
+SURVEY_ALIGNMENT = "survey_alignment"  # header attachment of a survey map: its T_rough (alignment_json)
 
 
 def map_path(cfg: AppConfig) -> Path:
@@ -72,8 +73,9 @@ class Restored:
 
     loaded: LoadedMap
     alignment: Alignment | None
-    age_s: float  # wall-clock seconds since the alignment was accepted (0 without one)
+    age_s: float  # wall-clock seconds since the alignment was accepted (0 without one, or a survey's)
     why_not: str | None = None
+    survey: bool = False  # the site's survey map (align-offline), not this service's own saved map
 
 
 def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | None:
@@ -115,6 +117,32 @@ def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | 
         return Restored(loaded, None, age_s, f"saved alignment is {age_s:.0f} s old (persistence.max_restore_age_s "
                                              f"{cfg.persistence.max_restore_age_s:g} s)")
     return Restored(loaded, a, age_s)
+
+
+def load_survey(path: Path, camera: CameraModel, site_id: str, now_mono_s: float | None = None) -> Restored:
+    """A site's survey SLAM map (``terraslam align-offline``, stored in the GIS cache) with its
+    T_rough, to start in without GNSS. The alignment has no age: it registers the survey map to the
+    GIS model, which does not drift with time. Raises MapFileError when the file cannot be used or
+    carries no T_rough for this site and map (the caller logs it and starts without it)."""
+    loaded = load_map_file(path, camera)
+    d = loaded.header.attachments.get(SURVEY_ALIGNMENT)
+    if d is None:
+        raise MapFileError(path, "no T_rough attached (not a survey map of align-offline)")
+    try:
+        a = alignment_from_json(d)
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(path, f"its T_rough is unreadable ({e})") from None
+    # The survey's keyframe times are its dataset's clock: moved so that the newest is a second
+    # ago on this process's monotonic clock (the camera's), as a map saved by this service would be.
+    now_s = time.monotonic() if now_mono_s is None else now_mono_s
+    newest_s = max(kf.t_s for kf in loaded.slam_map.keyframes.values())
+    loaded.rebase_times(now_s - 1.0 - newest_s)
+    a = replace(a, t_s=now_s - 1.0)
+    if d.get("site_id") != site_id:
+        raise MapFileError(path, f"its T_rough is for GIS site {d.get('site_id')!r}, this run uses {site_id!r}")
+    if (a.map_id, a.reset_counter) != (loaded.header.map_id, loaded.header.reset_counter):
+        raise MapFileError(path, "its T_rough belongs to another map")
+    return Restored(loaded, a, 0.0, survey=True)
 
 
 # --- save ----------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
-from companion.persistence import MapSaver, load_saved, map_path
+from companion.persistence import MapSaver, load_saved, load_survey, map_path
 from companion.pipeline import PipelineInput, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
@@ -54,8 +54,28 @@ def _open_camera(cfg: AppConfig):
     return open_source(cfg.camera), np.asarray(cfg.camera.T_body_cam, float)
 
 
+def _survey_map(cache, camera, site_id: str):
+    """The site's survey map with its T_rough (``terraslam align-offline``), or None: none stored,
+    or one that cannot be used (logged with the reason; the service starts without it)."""
+    from gis.cache import CacheCorrupt
+    from slam.persist import MapFileError
+
+    try:
+        path = cache.survey_map(site_id)
+        return None if path is None else load_survey(path, camera, site_id)
+    except (CacheCorrupt, MapFileError) as e:
+        log_event(log, "survey_map_unusable", f"not starting in the site's survey map: {e}", level=logging.WARNING)
+        return None
+
+
 def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
     h = restored.loaded.header
+    if restored.survey:
+        a = localizer.restore_alignment(restored.alignment, 0.0, cfg.persistence.restore_sigma_m, 0.0)
+        log_event(log, "survey_map_loaded", f"starting in the site's survey map {restored.loaded.path} ({h.n_keyframes} "
+                  f"keyframes, {h.n_points} points) with its T_rough (σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m); "
+                  "relocalising", map_id=h.map_id, sigma_m=a.sigma_m)
+        return
     what = (f"resuming in saved SLAM map {restored.loaded.path} ({h.n_keyframes} keyframes, {h.n_points} points, "
             f"saved {time.time() - h.created_wall_s:.0f} s ago); relocalising")
     if restored.alignment is None:
@@ -155,8 +175,11 @@ def run_service(cfg: AppConfig) -> int:
         return 2
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
+    if cfg.gis.use_survey_map and (restored is None or restored.alignment is None):
+        restored = _survey_map(cache, source.camera_model, site_id) or restored
     localizer = build_localizer(cfg, source.camera_model, T_body_cam, model,
-                                initial_map=restored.loaded if restored else None, p_body_gnss_m=cfg.mavlink.gnss_antenna_m)
+                                initial_map=restored.loaded if restored else None, p_body_gnss_m=cfg.mavlink.gnss_antenna_m,
+                                reloc_timeout_s=cfg.gis.survey_reloc_timeout_s if restored and restored.survey else None)
     if restored is not None:
         _restore_alignment(cfg, localizer, restored)
     georef_n = _restore_georef(cache, site_id, localizer)

@@ -1,9 +1,11 @@
 """GIS cache (TerraSLAM §6: Pre-fetch, SaveCache): models + per-site transforms in SQLite.
 
 Layout under ``root``: ``index.sqlite`` (tables ``models``, ``transforms``, ``georef``: the
-evidence on a model's georeference gathered against GNSS over the flights so far, and ``imports``:
-which site a model file was imported as, so an unchanged file is mapped, not parsed again) and
-``models/<sha256>.npz`` (the GisModel arrays, stored cell by cell and memory-mapped on load). Every model file and transform row carries a
+evidence on a model's georeference gathered against GNSS over the flights so far, ``imports``:
+which site a model file was imported as, so an unchanged file is mapped, not parsed again, and
+``survey_maps``: a site's survey SLAM map), ``models/<sha256>.npz`` (the GisModel arrays, stored
+cell by cell and memory-mapped on load) and ``maps/<sha256>.npz`` (survey SLAM maps, slam/persist.py
+files holding their T_rough: the service starts in one without GNSS). Every file and row carries a
 SHA-256 content hash that is checked on load; a mismatch raises CacheCorrupt naming the entry.
 A site covers the disc of ``radius_m`` around its model's ENU origin; ``prefetch`` returns the
 nearest site covering a position, with its T_rough, latest T_fine and georeference evidence.
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import sqlite3
 import time
 from dataclasses import dataclass, field
@@ -35,6 +38,7 @@ CREATE TABLE IF NOT EXISTS transforms (
 CREATE TABLE IF NOT EXISTS georef (
     site_id TEXT PRIMARY KEY, evidence_json TEXT, sha256 TEXT, saved_unix_s REAL);
 CREATE TABLE IF NOT EXISTS imports (source_key TEXT PRIMARY KEY, site_id TEXT, saved_unix_s REAL);
+CREATE TABLE IF NOT EXISTS survey_maps (site_id TEXT PRIMARY KEY, file TEXT, sha256 TEXT, saved_unix_s REAL);
 """
 
 
@@ -94,6 +98,51 @@ class GisCache:
             if source_key is not None:
                 db.execute("INSERT OR REPLACE INTO imports VALUES (?,?,?)", (source_key, site_id, time.time()))
         return site_id
+
+    def save_survey_map(self, site_id: str, map_file: Path | str) -> Path:
+        """Store (a copy of) a survey SLAM map file for a site, replacing the previous one; returns
+        the cached file. The file is a slam/persist.py map whose header carries its T_rough
+        (``companion.persistence.SURVEY_ALIGNMENT``); its own content hash is checked when the
+        service loads it, this row's hash when the cache hands it out."""
+        self._site(site_id)
+        (self.root / "maps").mkdir(exist_ok=True)
+        tmp = self.root / "maps" / f".tmp-{time.time_ns()}.npz"
+        shutil.copyfile(map_file, tmp)
+        digest = _sha256_file(tmp)
+        final = self.root / "maps" / f"{digest}.npz"
+        tmp.replace(final)
+        with self._db() as db:
+            old = db.execute("SELECT file FROM survey_maps WHERE site_id=?", (site_id,)).fetchone()
+            db.execute("INSERT OR REPLACE INTO survey_maps VALUES (?,?,?,?)", (site_id, final.name, digest, time.time()))
+        if old is not None and old[0] != final.name:
+            self._drop_map_file(old[0])
+        return final
+
+    def survey_map(self, site_id: str) -> Path | None:
+        """The site's survey SLAM map file, or None; CacheCorrupt when it is missing or does not
+        match its SHA-256."""
+        with self._db() as db:
+            r = db.execute("SELECT file, sha256 FROM survey_maps WHERE site_id=?", (site_id,)).fetchone()
+        if r is None:
+            return None
+        path = self.root / "maps" / r[0]
+        if not path.is_file():
+            raise CacheCorrupt(f"site {site_id!r}: survey map {path} is missing")
+        if _sha256_file(path) != r[1]:
+            raise CacheCorrupt(f"site {site_id!r}: survey map {path} does not match its SHA-256 (corrupted)")
+        return path
+
+    def _drop_map_file(self, name: str) -> int:
+        """Delete a survey map file no site refers to any more; the bytes freed."""
+        with self._db() as db:
+            if db.execute("SELECT COUNT(*) FROM survey_maps WHERE file=?", (name,)).fetchone()[0]:
+                return 0
+        path = self.root / "maps" / name
+        if not path.is_file():
+            return 0
+        size = path.stat().st_size
+        path.unlink()
+        return size
 
     def imported(self, source_key: str) -> str | None:
         """The site whose model was saved from the source ``source_key`` names
@@ -176,21 +225,23 @@ class GisCache:
         return None if best is None else best[1]
 
     def remove(self, site_id: str) -> int:
-        """Forget a site: its model row, transforms, georeference evidence and imports; its model
-        file is deleted unless another site holds the same content. Returns the bytes freed.
+        """Forget a site: its model row, transforms, georeference evidence, imports and survey map;
+        its model file is deleted unless another site holds the same content. Returns the bytes freed.
         KeyError if there is no such site. (A running service that mapped the file keeps its
         pages: the file's inode lives until it unmaps it.)"""
         row = self._site(site_id)
         with self._db() as db:
-            for table in ("models", "transforms", "georef", "imports"):
+            survey = db.execute("SELECT file FROM survey_maps WHERE site_id=?", (site_id,)).fetchone()
+            for table in ("models", "transforms", "georef", "imports", "survey_maps"):
                 db.execute(f"DELETE FROM {table} WHERE site_id=?", (site_id,))  # noqa: S608 (fixed table names)
             shared = db.execute("SELECT COUNT(*) FROM models WHERE file=?", (row["file"],)).fetchone()[0]
+        freed = 0 if survey is None else self._drop_map_file(survey[0])
         path = self._file(row)
         if shared or not path.is_file():
-            return 0
+            return freed
         size = path.stat().st_size
         path.unlink()
-        return size
+        return freed + size
 
     def model_file(self, site_id: str) -> Path:
         """The cached model file of a site (an .npz ``gis.loaders.load_model`` reads too)."""

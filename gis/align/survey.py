@@ -4,9 +4,11 @@ COLMAP (pycolmap) SfM on the survey frames with the known pinhole intrinsics: SI
 sequential matching (video order, with loop detection off), incremental mapping; the largest
 reconstruction's 3D points are the survey cloud.
 
-Frame caveat: the cloud is in the reconstruction's own frame. TerraSLAM reuses T_rough online
-because its online SLAM and the survey share one SLAM frame; a T_rough computed here applies to
-maps in this reconstruction's frame only (the online map must be registered to it first).
+Frame: the cloud is in the reconstruction's own frame. TerraSLAM reuses T_rough online because
+its online SLAM and the survey share one SLAM frame. Here our SLAM also maps the survey frames
+(companion/survey.py: the survey map the service starts in) and ``register_centres`` maps that
+map's frame to the reconstruction's through the camera centres of the frames both hold, so
+T_rough ∘ T_colmap_slam maps the survey map to ECEF.
 """
 from __future__ import annotations
 
@@ -15,6 +17,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from gis.sim3 import Sim3, umeyama
 
 
 @dataclass(frozen=True)
@@ -71,3 +75,47 @@ def reconstruct_survey(image_dir: Path, image_names: list[str], K: np.ndarray, w
         raise SurveyReconstructionFailed(f"COLMAP reconstruction has only {len(pts)} points (< {min_points})")
     centers = {im.name: np.asarray(im.projection_center(), float) for im in rec.images.values() if im.has_pose}
     return SurveyCloud(pts, centers)
+
+
+class SurveyRegistrationFailed(RuntimeError):
+    """The survey SLAM map and the reconstruction cannot be put in one frame; the message says why."""
+
+
+@dataclass(frozen=True)
+class CentreRegistration:
+    T_dst_src: Sim3        # maps the source frame (survey SLAM map) into the destination (COLMAP)
+    n_pairs: int           # frames used (after trimming)
+    rmse_rel: float        # residual RMSE / extent of the destination track (dimensionless)
+
+
+def register_centres(src: dict[str, np.ndarray], dst: dict[str, np.ndarray], min_pairs: int = 6,
+                     max_rmse_rel: float = 0.02) -> CentreRegistration:
+    """Sim(3) mapping the camera centres ``src`` (name → (3,)) onto ``dst`` of the same frames
+    (Umeyama, gis.sim3.umeyama), trimmed twice of pairs beyond 3× the median residual (a frame one
+    of the two placed badly). Both tracks are in arbitrary scale: ``max_rmse_rel`` bounds the
+    residual RMSE relative to the destination track's extent (its bounding-box diagonal).
+    SurveyRegistrationFailed with fewer than ``min_pairs`` common frames, a straight track (its
+    rotation about the line is undetermined) or a residual beyond the bound."""
+    names = sorted(set(src) & set(dst))
+    if len(names) < min_pairs:
+        raise SurveyRegistrationFailed(f"only {len(names)} frames are in both the survey map and the reconstruction "
+                                       f"(need ≥ {min_pairs})")
+    a = np.array([src[n] for n in names], float)
+    b = np.array([dst[n] for n in names], float)
+    extent = float(np.linalg.norm(np.ptp(b, axis=0)))
+    sv = np.linalg.svd(b - b.mean(axis=0), compute_uv=False)
+    if extent <= 0 or sv[1] < 0.05 * sv[0]:
+        raise SurveyRegistrationFailed("the survey track is (nearly) a straight line: its rotation about it is undetermined")
+    keep = np.ones(len(names), bool)
+    for _ in range(3):
+        T = umeyama(a[keep], b[keep], with_scale=True)
+        r = np.linalg.norm(T.apply(a) - b, axis=1)
+        new = r <= max(3 * float(np.median(r[keep])), 1e-9 * extent)
+        if new.sum() < min_pairs or (new == keep).all():
+            break
+        keep = new
+    rmse_rel = float(np.sqrt(np.mean(r[keep] ** 2))) / extent
+    if rmse_rel > max_rmse_rel:
+        raise SurveyRegistrationFailed(f"the survey map and the reconstruction disagree: camera centres {100 * rmse_rel:.1f} % "
+                                       f"of the track apart after the best similarity (> {100 * max_rmse_rel:.1f} %)")
+    return CentreRegistration(T, int(keep.sum()), rmse_rel)
