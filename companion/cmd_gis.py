@@ -94,11 +94,18 @@ def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE)
     model_sigma_m = _app_config(config).alignment.model_sigma_m
     for e in entries:
         t.add_row(e.site_id, f"{e.origin.lat0_deg:.6f}, {e.origin.lon0_deg:.6f}", f"{e.radius_m:.0f}", str(e.n_points),
-                  e.source_crs, "yes" if e.T_rough else "-", "yes" if e.T_fine else "-",
+                  e.source_crs, _rough_kind(e), "yes" if e.T_fine else "-",
                   _georef_verdict(e.georef, model_sigma_m), e.sha256[:12])
     Console().print(t)
     if not entries:
         typer.echo("(cache is empty)")
+
+
+def _rough_kind(e) -> str:
+    """What a site's T_rough maps: the survey map the service starts in, or only its survey cloud."""
+    if e.T_rough is None:
+        return "-"
+    return "survey map" if str(e.meta.get("rough", {}).get("frame", "")).startswith("survey map") else "cloud frame only"
 
 
 @gis_app.command("rm")

@@ -127,6 +127,9 @@ def test_align_offline_with_given_survey_cloud_stores_t_rough(tmp_path):
     truth = compose(enu_sim3(m.origin), T_enu_slam)
     assert np.mean(np.linalg.norm(T.apply(p_slam) - truth.apply(p_slam), axis=1)) < 0.5
     assert meta["error_m"] < 0.5
+    assert "no survey map" in r.stdout and GisCache(tmp_path / "c").survey_map("s1") is None
+    ls = _run("gis", "ls", "--cache-dir", str(tmp_path / "c"), env={"COLUMNS": "250"})
+    assert "cloud frame only" in ls.stdout, ls.stdout
 
 
 @pytest.mark.slow
@@ -156,4 +159,5 @@ def test_align_offline_colmap_on_rendered_survey(tmp_path):
     print(f"survey map: {len(err)} keyframes, T_rough at them vs truth: mean {err.mean():.2f} m, max {err.max():.2f} m; "
           f"{meta}")
     assert "survey map" in r.stderr and "starts in its survey map" in r.stdout
+    assert "survey map" in _run("gis", "ls", "--cache-dir", str(tmp_path / "c"), env={"COLUMNS": "250"}).stdout
     assert err.mean() < 2.0 and err.max() < 4.0
