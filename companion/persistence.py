@@ -119,7 +119,7 @@ def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | 
     return Restored(loaded, a, age_s)
 
 
-def load_survey(path: Path, camera: CameraModel, site_id: str, now_mono_s: float | None = None) -> Restored:
+def load_survey(path: Path, camera: CameraModel, site_id: str) -> Restored:
     """A site's survey SLAM map (``terraslam align-offline``, stored in the GIS cache) with its
     T_rough, to start in without GNSS. The alignment has no age: it registers the survey map to the
     GIS model, which does not drift with time. Raises MapFileError when the file cannot be used or
@@ -132,17 +132,16 @@ def load_survey(path: Path, camera: CameraModel, site_id: str, now_mono_s: float
         a = alignment_from_json(d)
     except (KeyError, TypeError, ValueError) as e:
         raise MapFileError(path, f"its T_rough is unreadable ({e})") from None
-    # The survey's keyframe times are its dataset's clock: moved so that the newest is a second
-    # ago on this process's monotonic clock (the camera's), as a map saved by this service would be.
-    now_s = time.monotonic() if now_mono_s is None else now_mono_s
-    newest_s = max(kf.t_s for kf in loaded.slam_map.keyframes.values())
-    loaded.rebase_times(now_s - 1.0 - newest_s)
-    a = replace(a, t_s=now_s - 1.0)
     if d.get("site_id") != site_id:
         raise MapFileError(path, f"its T_rough is for GIS site {d.get('site_id')!r}, this run uses {site_id!r}")
     if (a.map_id, a.reset_counter) != (loaded.header.map_id, loaded.header.reset_counter):
         raise MapFileError(path, "its T_rough belongs to another map")
-    return Restored(loaded, a, 0.0, survey=True)
+    # The survey's keyframe times are its dataset's clock: moved so that the newest is a second
+    # ago on this process's monotonic clock (the camera's), as a map saved by this service would
+    # be. (Keyframe times later than the frames' had the pose 45 m off within 20 s.)
+    now_s = time.monotonic()
+    loaded.rebase_times(now_s - 1.0 - max(kf.t_s for kf in loaded.slam_map.keyframes.values()))
+    return Restored(loaded, replace(a, t_s=now_s - 1.0), 0.0, survey=True)
 
 
 # --- save ----------------------------------------------------------------------------------------
