@@ -162,5 +162,6 @@ def test_service_starts_in_the_survey_map_and_fixes_without_gnss(survey, tmp_pat
     assert recs[0].pose.map_id == restored.loaded.header.map_id
     assert len(fixed) >= 0.9 * len(recs)
     assert np.all(err <= 3 * acc), err
-    # tracked in the survey map: 1.2-3.3 m mean over 8 runs here (before map reuse: 10-30 m off within 2 s)
-    assert err[0] < 1.0 and err.mean() < 6.0
+    # tracked in the survey map: first frame 0.1-0.7 m off, 1.1-3.3 m mean over 7 runs here (before map
+    # reuse: 10-30 m off within 2 s)
+    assert err[0] < 1.5 and err.mean() < 6.0
