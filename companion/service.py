@@ -54,6 +54,12 @@ def _open_camera(cfg: AppConfig):
     return open_source(cfg.camera), np.asarray(cfg.camera.T_body_cam, float)
 
 
+def _accepted(a) -> tuple | None:
+    """What identifies an accepted alignment (its source and acceptance time) across the copies
+    that follow its points."""
+    return None if a is None else (a.source, a.t_s)
+
+
 def _survey_map(cache, camera, site_id: str):
     """The site's survey map with its T_rough (``terraslam align-offline``), or None: none stored,
     or one that cannot be used (logged with the reason; the service starts without it)."""
@@ -195,7 +201,7 @@ def run_service(cfg: AppConfig) -> int:
                     on_attitude=recorder.on_attitude if recorder else None,
                     on_mavlink=recorder.on_mavlink if recorder else None).start()
     latency = LatencyTracker()
-    saved = {"t": None, "alignment": localizer.alignment}
+    saved = {"t": None, "alignment": _accepted(localizer.alignment)}
 
     def save_fine() -> None:
         a = localizer.alignment
@@ -216,11 +222,14 @@ def run_service(cfg: AppConfig) -> int:
                   n=ev.n)
 
     def alignment_changed() -> None:
-        """A newly accepted alignment goes to disk with the map soon (by the saver thread)."""
-        a = localizer.alignment
-        if a is not saved["alignment"]:
-            saved["alignment"] = a
-            if a is not None and saver is not None:
+        """A newly accepted alignment goes to disk with the map soon (by the saver thread). One that
+        only follows its points (re-expressed after local mapping moved them, several times a
+        second) waits for the periodic save: requesting one each time rewrote the whole map
+        (4-5 MB at a survey site) about every second."""
+        key = _accepted(localizer.alignment)
+        if key != saved["alignment"]:
+            saved["alignment"] = key
+            if key is not None and saver is not None:
                 saver.request()
 
     def hot_path(ctx: StageContext) -> None:
