@@ -350,7 +350,7 @@ class LocalMapper:
 
     def _cull(self, kf: Keyframe, ids: list[int]) -> None:
         """Drop points created >= 3 keyframes ago that are seen by fewer than 3 keyframes (ORB-SLAM)."""
-        if len(ids) < 4:
+        if len(ids) < 4 or ids[-4] <= self._loaded_upto:  # never a loaded map's points (its window holds old keyframes)
             return
         old = ids[-4]
         m = self.map
