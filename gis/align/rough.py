@@ -111,7 +111,7 @@ def level_and_segment(p: np.ndarray, unit: float, ground: np.ndarray | None = No
 
 
 def rough_align(cloud_slam: np.ndarray, model: GisModel, center_enu: np.ndarray, radius_m: float = 250.0,
-                top_k: int = 3, progress: Callable[[str], None] | None = None, refine: bool = True,
+                top_k: int = 8, progress: Callable[[str], None] | None = None, refine: bool = True,
                 score_m: float = 1.5, min_score: float = 0.5, start: StartPrior | None = None,
                 distinct_m: float = 10.0, max_runner_up: float = 0.9) -> RoughResult:
     """T_rough mapping the survey cloud (SLAM frame) to ECEF; RoughAlignmentFailed if none fits,
