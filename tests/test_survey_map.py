@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -82,10 +83,12 @@ def test_cache_keeps_a_sites_survey_map_checks_its_hash_and_forgets_it(tmp_path)
     assert cache.remove(site) >= size and not second.exists()
 
 
-@pytest.fixture(scope="module")
-def survey(tmp_path_factory):
-    """Our SLAM's map of 40 s (a side and a turn) of the `nominal` flight (10 fps), its T_rough from a stand-in
-    reconstruction, stored in a GIS cache as align-offline stores it."""
+def build_survey(tmp: Path, model=None, n_frames: int = N_SURVEY):
+    """Our SLAM's map of the first ``n_frames`` of the `nominal` flight (10 fps; 400: 40 s, a side
+    and a turn), its T_rough from a stand-in reconstruction (the truth's camera centres in a frame
+    of unknown scale, rotation and origin, where align-offline has COLMAP's), stored in a GIS cache
+    as align-offline stores it with ``model`` (default: any model, for the site's row).
+    Returns (cache, site, scenario, registration, alignment)."""
     from companion.config import AppConfig
     from companion.sim import make_scenario
     from companion.survey import map_survey, save_survey_map, survey_alignment
@@ -94,12 +97,10 @@ def survey(tmp_path_factory):
     from gis.sim3 import compose
     from gis.synthetic import box_city_model
 
-    tmp = tmp_path_factory.mktemp("survey")
-    sc = make_scenario("nominal", seed=0, fps=FPS, n_frames=N_SURVEY)
-    names = [f"{i:06d}.png" for i in range(N_SURVEY)]
+    sc = make_scenario("nominal", seed=0, fps=FPS, n_frames=n_frames)
+    names = [f"{i:06d}.png" for i in range(n_frames)]
     sm = map_survey(sc.camera, sc.steps(), names, AppConfig().slam)
     try:
-        # the "reconstruction": truth camera centres in a frame of unknown scale, rotation, origin
         T_colmap_enu = Sim3(0.02, Rotation.from_euler("zyx", [-70, 8, 3], degrees=True).as_matrix(), np.array([3.0, -1, 2]))
         colmap = {n: T_colmap_enu.apply(sc.truth.T_enu_cam[i][None, :3, 3])[0] for i, n in enumerate(names) if i % 4 == 0}
         colmap.update({n: T_colmap_enu.apply(sc.truth.T_enu_cam[int(n[:6])][None, :3, 3])[0] for n in sm.keyframe_centres})
@@ -107,12 +108,17 @@ def survey(tmp_path_factory):
         T_rough_colmap = compose(enu_sim3(sc.origin), T_colmap_enu.inverse())  # what rough_align finds on the cloud
         a = survey_alignment(sm, compose(T_rough_colmap, reg.T_dst_src), sigma_m=1.5)
         cache = GisCache(tmp / "cache")
-        site = cache.save_model(box_city_model(100.0, sc.origin, spacing_m=4.0), "site-S")  # any model: the site's row
+        site = cache.save_model(model if model is not None else box_city_model(100.0, sc.origin, spacing_m=4.0), "site-S")
         saved = save_survey_map(sm, tmp / "survey.npz", a, site)
         cache.save_survey_map(site, saved.path)
     finally:
         sm.close()
     return cache, site, sc, reg, a
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    return build_survey(tmp_path_factory.mktemp("survey"))
 
 
 def test_survey_map_is_registered_on_its_keyframes(survey) -> None:
