@@ -303,6 +303,20 @@ class VehicleFeed:
         self.thread.join(2.0)
 
 
+def stop_all(procs, feeds, sim: SimAutopilot, notify: TimedListener) -> None:
+    """Test teardown: kill the service processes still running, stop the vehicle feeds, close the
+    simulated autopilot and the notify listener."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.wait(10)
+    for f in feeds:
+        if f is not None:
+            f.__exit__()
+    sim.close()
+    notify.lst.close()
+
+
 def _horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
     return float(np.hypot(ned[0], ned[1]))
@@ -362,13 +376,7 @@ def test_service_takes_over_and_emits_fixes_after_gnss_loss(tmp_path: Path, gis_
         rc = proc.wait(TIMEOUT_STOP_S + 5)
         notify.poll(0.2)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        if feed is not None:
-            feed.__exit__()
-        sim.close()
-        notify.lst.close()
+        stop_all([proc], [feed], sim, notify)
     log_text = log_path.read_text()
     wall_s = time.monotonic() - t_test
     texts = [t for _, t in received.statustext]

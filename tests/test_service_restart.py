@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from test_service_e2e import (EPOCH_RE, MAX_FIX_AGE_S, SIM_FPS, TERRASLAM, TimedListener, VehicleFeed, _horizontal_m,
-                              _service_env, _write_config, gis_mesh)  # noqa: F401  (gis_mesh is a fixture)
+                              _service_env, _write_config, gis_mesh, stop_all)  # noqa: F401  (gis_mesh is a fixture)
 
 from mavlink_bridge.sim_autopilot import SimAutopilot
 from slam.persist import load_map_file
@@ -107,15 +107,7 @@ def test_kill_9_during_gnss_outage_then_restart_resumes_fixes(tmp_path: Path, gi
         proc2.send_signal(signal.SIGTERM)
         rc2 = proc2.wait(20)
     finally:
-        for p in (proc, proc2):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait(10)
-        for f in (feed, feed2):
-            if f is not None:
-                f.__exit__()
-        sim.close()
-        notify.lst.close()
+        stop_all([proc, proc2], [feed, feed2], sim, notify)
     text2 = log2.read_text()
     # GPS_INPUT the autopilot received from the second process (its record of the last one before the
     # kill is not ours to count)

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_service_e2e import TERRASLAM, TimedListener, VehicleFeed, _horizontal_m, _service_env, gis_mesh  # noqa: F401
+from test_service_e2e import (TERRASLAM, TimedListener, VehicleFeed, _horizontal_m, _service_env, gis_mesh,  # noqa: F401
+                              stop_all)
 from test_service_restart import _epoch
 from test_survey_map import build_survey
 
@@ -57,13 +58,7 @@ def test_service_at_a_surveyed_site_sends_fixes_with_no_gnss_ever(tmp_path: Path
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(20)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        if feed is not None:
-            feed.__exit__()
-        sim.close()
-        notify.lst.close()
+        stop_all([proc], [feed], sim, notify)
     text = log_path.read_text()
     fixes = [r for r in feed.gps_input if r[1] >= 3]
     err = [(t, _horizontal_m(lat, lon, *feed.truth(np.floor(t * FPS) / FPS)[:2]), hacc) for t, _, lat, lon, hacc in fixes]
