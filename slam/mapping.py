@@ -484,17 +484,18 @@ class LocalMapper:
         self._changed = pids
 
     def _publish_local_map(self, ids: list[int], kf: Keyframe | None = None) -> None:
-        """The tracker's local map: the newest ``local_map_keyframes`` keyframes and, with ``kf``,
-        the keyframes that share the most points with it. In a flight these are the newest ones
-        anyway; after a relocalisation into an older part of the map (a resumed or survey map),
-        they are the old keyframes there, so tracking goes on against the map it found instead of
-        only the points it triangulates anew (map reuse)."""
+        """The tracker's local map. In a map loaded from disk: ``ids`` whole, kf's neighbourhood
+        (``_neighbourhood``: its covisible keyframes and the nearest loaded ones). Else the newest
+        ``local_map_keyframes`` keyframes and, with ``kf``, the keyframes that share the most
+        points with it: in a flight these are the newest ones anyway; after a loop closure or a
+        relocalisation into an older part of the map they are the old keyframes there, so tracking
+        goes on against the map it found instead of only the points it triangulates anew."""
         if self.shared.active_map is not self.map:
             return  # the tracker has already reset to a new map
         n = self.config.local_map_keyframes
         with self.map.lock:
-            local = ids if self._loaded_upto >= 0 else ids[-n:]  # a loaded map's: the neighbourhood
-            if kf is not None:
+            local = ids if self._loaded_upto >= 0 else ids[-n:]
+            if kf is not None and self._loaded_upto < 0:  # (the neighbourhood holds kf's covisible keyframes already)
                 newest = set(local)
                 local = [k for k in self.map.covisible(kf.point_ids[kf.point_ids >= 0], n) if k not in newest] + local
             self._lm_version += 1
