@@ -230,8 +230,7 @@ def align_offline(
             except SurveyMappingFailed as e:
                 fail(f"{dataset}: {e}")
         console.print(f"survey map: {len(sm.keyframe_centres)} keyframes, {100 * sm.tracking_ratio:.0f} % of frames tracked")
-        names = sorted({p.name for p in ds.frame_paths[::stride]} | set(sm.keyframe_centres),
-                       key=[p.name for p in ds.frame_paths].index)
+        names = [p.name for i, p in enumerate(ds.frame_paths) if i % stride == 0 or p.name in sm.keyframe_centres]
         with console.status("COLMAP survey reconstruction") as status:
             try:
                 survey = reconstruct_survey(ds.frame_paths[0].parent, names, ds.camera.K, dataset / "colmap",
