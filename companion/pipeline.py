@@ -652,8 +652,10 @@ class Localizer:
             self.globalizer.update_alignment(alignment)
         self.events.append((alignment.t_s, f"alignment {alignment.source.value} accepted ({why}; σ={alignment.sigma_m:.2f} m)"))
 
-    def restore_alignment(self, saved: Alignment, age_s: float, sigma_restart_m: float, sigma_growth_mps: float) -> Alignment:
-        """Adopt an alignment saved with the SLAM map this process resumed in (after a restart).
+    def restore_alignment(self, saved: Alignment, age_s: float, sigma_restart_m: float, sigma_growth_mps: float,
+                          source: str = "after a restart") -> Alignment:
+        """Adopt an alignment saved with the SLAM map this process resumed in (after a restart, or
+        a site's survey map: ``source`` says which in the event).
 
         Its covariance is inflated, never shrunk: an isotropic position term
         σ_add = hypot(sigma_restart_m, sigma_growth_mps · age_s) is added to the translation block
@@ -664,7 +666,7 @@ class Localizer:
         SLAM starts a fresh map, ``process`` drops it like any other."""
         add_m = math.hypot(sigma_restart_m, sigma_growth_mps * max(age_s, 0.0))
         a = inflate_alignment(saved, add_m)
-        self._accept(a, f"restored after a restart, {age_s:.0f} s old, σ {saved.sigma_m:.2f} → {a.sigma_m:.2f} m")
+        self._accept(a, f"restored {source}, {age_s:.0f} s old, σ {saved.sigma_m:.2f} → {a.sigma_m:.2f} m")
         return a
 
     def _drop_alignment(self, t_s: float, why: str) -> None:

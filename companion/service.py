@@ -29,11 +29,11 @@ from companion.persistence import MapSaver, load_saved, load_survey, map_path
 from companion.pipeline import PipelineInput, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
+from mavlink_bridge.types import GnssQuality
 
 if TYPE_CHECKING:
     from gis.cache import GisCache
     from gis.model import GisModel
-from mavlink_bridge.types import GnssQuality
 
 log = logging.getLogger("terraslam.service")
 
@@ -77,7 +77,8 @@ def _survey_map(cache, camera, site_id: str):
 def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
     h = restored.loaded.header
     if restored.survey:
-        a = localizer.restore_alignment(restored.alignment, 0.0, cfg.persistence.restore_sigma_m, 0.0)
+        a = localizer.restore_alignment(restored.alignment, 0.0, cfg.persistence.restore_sigma_m, 0.0,
+                                        source="from the site's survey map")
         log_event(log, "survey_map_loaded", f"starting in the site's survey map {restored.loaded.path} ({h.n_keyframes} "
                   f"keyframes, {h.n_points} points) with its T_rough (σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m); "
                   "relocalising", map_id=h.map_id, sigma_m=a.sigma_m)
