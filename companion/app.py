@@ -97,17 +97,20 @@ class GnssDenial:
 
 def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray, model: GisModel | None,
                     initial_alignment: Alignment | None = None, initial_map=None,
-                    repeatable: bool = False, p_body_gnss_m=(0.0, 0.0, 0.0), reloc_timeout_s: float | None = None) -> Localizer:
+                    repeatable: bool = False, p_body_gnss_m=(0.0, 0.0, 0.0), reloc_timeout_s: float | None = None,
+                    keep_loaded_map: bool = False) -> Localizer:
     """SLAM + fine-tuner + globalizer as configured; slam is imported here (torch is heavy).
     ``initial_map``: a slam.persist.LoadedMap to resume in (the service after a restart, or a
     site's survey map), relocalising in it within ``reloc_timeout_s`` of frame time (default
-    ``persistence.reloc_timeout_s``).
+    ``persistence.reloc_timeout_s``); ``keep_loaded_map``: its keyframes are never forgotten by
+    the memory cap (a survey map: slam.system.SlamSystem).
     ``repeatable``: offline runs only (Localizer.settle, REPEATABLE_LAG_S); never live.
     ``p_body_gnss_m``: the GNSS antenna, FRD metres from the body origin (BootstrapCollector)."""
     from slam.system import SlamSystem
 
     slam = SlamSystem(camera, cfg.slam, initial_map=initial_map,
-                      reloc_timeout_s=cfg.persistence.reloc_timeout_s if reloc_timeout_s is None else reloc_timeout_s)
+                      reloc_timeout_s=cfg.persistence.reloc_timeout_s if reloc_timeout_s is None else reloc_timeout_s,
+                      keep_loaded=keep_loaded_map)
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,

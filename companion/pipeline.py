@@ -176,6 +176,24 @@ class GnssConsistency:
         self._mean, self._since, self._last_t, self.inconsistent = None, None, None, False
 
 
+@dataclass(frozen=True)
+class SurveyArea:
+    """Where a site's survey map lies: its keyframes' camera centres in ECEF (metres) under its
+    T_rough, and ``reach_m``, how far from the nearest of them a camera can still see what the
+    survey saw (``gis.survey_reach_m``). Farther than that, relocalising in the survey map is not
+    to be expected; waiting for it (``gis.survey_reloc_timeout_s``) would leave the vehicle with
+    no SLAM map, so no GNSS bootstrap, until the wait ends."""
+
+    keyframes_ecef_m: np.ndarray
+    reach_m: float
+
+    def distance_m(self, lat_deg: float, lon_deg: float, h_ellipsoid_m: float) -> float:
+        """Horizontal distance (metres, in the local level frame at the position) from the
+        position to the nearest survey keyframe."""
+        d_enu = (self.keyframes_ecef_m - geodetic_to_ecef(lat_deg, lon_deg, h_ellipsoid_m)) @ R_ecef_enu(lat_deg, lon_deg)
+        return float(np.min(np.hypot(d_enu[:, 0], d_enu[:, 1])))
+
+
 @dataclass
 class SlamSpeedCheck:
     """Is the SLAM map's scale still the one the alignment assumed? (integrity; beyond the papers)
@@ -587,6 +605,8 @@ class Localizer:
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
         self.worker = (FineTuneWorker(tuner, self._on_finetune, self._on_scale_check, lag_s=repeatable_lag_s)
                        if tuner is not None else None)
+        self._survey_area: SurveyArea | None = None  # while SLAM waits to relocalise in a survey map
+        self.on_event: Callable[[float, str], None] | None = None  # (t_s, text) of each event, as it happens (the service logs them)
         if initial_alignment is not None:
             self._accept(initial_alignment, "initial")
 
@@ -636,8 +656,8 @@ class Localizer:
             self.globalizer.update_alignment(followed, follows=alignment)
         self._cloud = _Cloud(followed, cloud.point_ids, p_now, lm.version)
         if moved_m >= FOLLOW_EVENT_M:
-            self.events.append((pose.t_s, f"alignment follows its points: {int(held.sum())} of {len(held)} moved "
-                                          f"by local mapping, the fix by {moved_m:.2f} m"))
+            self._note((pose.t_s, f"alignment follows its points: {int(held.sum())} of {len(held)} moved "
+                                   f"by local mapping, the fix by {moved_m:.2f} m"))
         return followed
 
     def _accept(self, alignment: Alignment, why: str) -> None:
@@ -650,7 +670,7 @@ class Localizer:
                 self.gnss_check.shift((R_ecef_enu(float(lat), float(lon)).T @ (old.T_ecef_slam.apply(c)[0] - p_new))[:2])
             self.alignment = alignment
             self.globalizer.update_alignment(alignment)
-        self.events.append((alignment.t_s, f"alignment {alignment.source.value} accepted ({why}; σ={alignment.sigma_m:.2f} m)"))
+        self._note((alignment.t_s, f"alignment {alignment.source.value} accepted ({why}; σ={alignment.sigma_m:.2f} m)"))
 
     def restore_alignment(self, saved: Alignment, age_s: float, sigma_restart_m: float, sigma_growth_mps: float,
                           source: str = "after a restart") -> Alignment:
@@ -669,8 +689,40 @@ class Localizer:
         self._accept(a, f"restored {source}, {age_s:.0f} s old, σ {saved.sigma_m:.2f} → {a.sigma_m:.2f} m")
         return a
 
+    def _note(self, event: tuple[float, str]) -> None:
+        """An alignment event (t_s, text): kept in ``events`` and handed to ``on_event``."""
+        self.events.append(event)
+        if self.on_event is not None:
+            self.on_event(*event)
+
+    def watch_survey_area(self, area: SurveyArea) -> None:
+        """SLAM started in a site's survey map (lying in ``area``) and waits to relocalise in it.
+        While it waits, a trusted GNSS fix farther than ``area.reach_m`` from every survey
+        keyframe gives the survey map up (``_leave_survey_if_far``)."""
+        self._survey_area = area
+
+    def _leave_survey_if_far(self, t_s: float, gnss: GnssSample | None, trusted: bool) -> None:
+        """Started in a survey map but taking off elsewhere: the wait to relocalise there would
+        leave SLAM without a map (so no GNSS bootstrap either) for up to
+        ``gis.survey_reloc_timeout_s``, and a GNSS loss meanwhile without any fix. With trusted
+        GNSS placing the vehicle beyond the survey's reach, SLAM starts a fresh map now and
+        bootstraps from GNSS as on any flight. Untrusted GNSS never gives the survey map up."""
+        if self._survey_area is None:
+            return
+        if not self.slam.resuming:  # relocalised in it, or the wait ended
+            self._survey_area = None
+            return
+        if not trusted or gnss is None or gnss.fix_type < GpsFixType.FIX_3D:
+            return
+        d_m = self._survey_area.distance_m(gnss.lat_deg, gnss.lon_deg, h_ellipsoid_of(gnss))
+        if d_m > self._survey_area.reach_m:
+            self.slam.abandon_loaded_map()
+            self._note((t_s, f"survey map given up: GNSS (trusted) puts the vehicle {d_m:.0f} m from its nearest "
+                              f"keyframe (reach {self._survey_area.reach_m:.0f} m); fresh map, GNSS bootstrap"))
+            self._survey_area = None
+
     def _drop_alignment(self, t_s: float, why: str) -> None:
-        self.events.append((t_s, why))
+        self._note((t_s, why))
         with self._lock:
             self.alignment = None
             self.gnss_check.reset()
@@ -686,7 +738,7 @@ class Localizer:
         if alignment is not None and icp is not None and job is not None:
             self._check_georef(*job, icp)
         if alignment is None:
-            self.events.append((t, f"fine-tuning rejected: {reason} ({wall_ms:.0f} ms)"))
+            self._note((t, f"fine-tuning rejected: {reason} ({wall_ms:.0f} ms)"))
             if reason.startswith(SCALE_MISMATCH_REASON):
                 # The map under the camera is not at the alignment's scale: fixes would drift
                 # off at speed × mismatch while claiming the alignment's σ. Send nothing.
@@ -722,7 +774,7 @@ class Localizer:
             return None
         with self._lock:
             self.georef.add_evidence(evidence)
-        self.events.append((t_s, f"GIS model georeference: {evidence.n} registrations vs GNSS from earlier flights"))
+        self._note((t_s, f"GIS model georeference: {evidence.n} registrations vs GNSS from earlier flights"))
         self._apply_georef(t_s)
         return self._tuner.correction
 
@@ -738,11 +790,11 @@ class Localizer:
         g = self.georef
         test = f"F {g.stat:.1f} {'>' if new is not None else '<='} {g.critical:.1f}, variance factor {g.alpha:.2f}"
         if new is not None:
-            self.events.append((t_s, f"{new.describe()}: corrected ({test})"))
+            self._note((t_s, f"{new.describe()}: corrected ({test})"))
             if old is None:
                 log.warning("%s: corrected (%s)", new.describe(), test)
         else:
-            self.events.append((t_s, f"GIS model georeference as configured again ({test}): correction dropped"))
+            self._note((t_s, f"GIS model georeference as configured again ({test}): correction dropped"))
 
     def _on_scale_check(self, checked: Alignment, chk: ScaleCheck) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
@@ -779,6 +831,7 @@ class Localizer:
             self.worker.release(t_s)
 
     def process(self, item: PipelineInput) -> FrameRecord:
+        self._leave_survey_if_far(item.frame.t_s, item.gnss, item.gnss_trusted)
         pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
         self._last_pose = pose
         with self._lock:

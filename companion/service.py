@@ -23,10 +23,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
 from companion.persistence import MapSaver, load_saved, load_survey, map_path
-from companion.pipeline import PipelineInput, attitude_prior
+from companion.pipeline import PipelineInput, SurveyArea, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
 from mavlink_bridge.types import GnssQuality
@@ -79,6 +81,10 @@ def _restore_alignment(cfg: AppConfig, localizer, restored) -> None:
     if restored.survey:
         a = localizer.restore_alignment(restored.alignment, 0.0, cfg.persistence.restore_sigma_m, 0.0,
                                         source="from the site's survey map")
+        m = restored.loaded.slam_map
+        with m.lock:
+            centres = np.array([kf.center for kf in m.keyframes.values()], float)
+        localizer.watch_survey_area(SurveyArea(restored.alignment.T_ecef_slam.apply(centres), cfg.gis.survey_reach_m))
         log_event(log, "survey_map_loaded", f"starting in the site's survey map {restored.loaded.path} ({h.n_keyframes} "
                   f"keyframes, {h.n_points} points) with its T_rough (σ {restored.alignment.sigma_m:.2f} → {a.sigma_m:.2f} m); "
                   "relocalising", map_id=h.map_id, sigma_m=a.sigma_m)
@@ -186,7 +192,10 @@ def run_service(cfg: AppConfig) -> int:
         restored = _survey_map(cache, source.camera_model, site_id) or restored
     localizer = build_localizer(cfg, source.camera_model, T_body_cam, model,
                                 initial_map=restored.loaded if restored else None, p_body_gnss_m=cfg.mavlink.gnss_antenna_m,
-                                reloc_timeout_s=cfg.gis.survey_reloc_timeout_s if restored and restored.survey else None)
+                                reloc_timeout_s=cfg.gis.survey_reloc_timeout_s if restored and restored.survey else None,
+                                keep_loaded_map=bool(restored and restored.survey))
+    # the alignment timeline (accepted, rejected, dropped, withheld, survey map given up) in the journal
+    localizer.on_event = lambda t_s, text: log_event(log, "alignment", text, t_s=round(t_s, 3))
     if restored is not None:
         _restore_alignment(cfg, localizer, restored)
     georef_n = _restore_georef(cache, site_id, localizer)

@@ -46,11 +46,13 @@ def map_survey(camera: CameraModel, steps: Iterable, frame_names: list[str], con
     """Run our SLAM over the survey's frames (``steps``: SimStep of a dataset or the simulator, with
     the recorded attitude as the replay gives it) and return the map with its keyframes' camera
     centres by frame name (``frame_names[frame.seq]``). A map reset during the survey keeps only the
-    last map: SurveyMappingFailed if it holds fewer than ``min_keyframes``."""
+    last map: SurveyMappingFailed if it holds fewer than ``min_keyframes``. Every keyframe is kept
+    whole (``slam.max_keyframes`` raised to the frame count): the memory cap would forget all but
+    every 10th of a survey longer than ~4 minutes, and the service keeps a survey map whole too."""
     from slam.system import SlamSystem
     from slam.types import TrackingState
 
-    slam = SlamSystem(camera, config)
+    slam = SlamSystem(camera, config.model_copy(update={"max_keyframes": max(config.max_keyframes, len(frame_names))}))
     n, tracked, last_att = len(frame_names), 0, None
     try:
         for k, step in enumerate(steps):

@@ -14,6 +14,7 @@ class GisConfig(BaseModel):
     site: str | None = Field(None, description="instead of model: a site of the GIS cache (what `terraslam gis import` or `gis fetch` stored; `gis ls` lists them)")
     use_survey_map: bool = Field(True, description="start in the site's survey SLAM map with its T_rough (`terraslam align-offline`) when no saved map with a usable alignment exists: fixes without GNSS from the first relocalised frame")
     survey_reloc_timeout_s: float = Field(900.0, gt=0, le=86_400, description="started in the survey map: relocalise in it within this long (frame time: on the ground before take-off too), else a fresh map (GNSS bootstrap as usual)")
+    survey_reach_m: float = Field(300.0, gt=0, le=100_000, description="started in the survey map and not relocalised yet: trusted GNSS farther than this from every survey keyframe gives the survey map up at once (fresh map, GNSS bootstrap), instead of waiting survey_reloc_timeout_s without a map")
     fetch_radius_m: float = Field(10_000.0, gt=0, le=100_000, description="fetch models within this radius of the rough position (TerraSLAM §6)")
     fetch_timeout_s: float = Field(30.0, gt=0, le=600)
     sample_spacing_m: float = Field(1.0, gt=0.05, le=20, description="surface sampling of meshes/polygons when loading a model (one point per spacing²); 3D Tiles are loaded at the coarsest level whose geometric error is at most this")

@@ -34,6 +34,9 @@ class BAProblem:
     # 3 runs, vs 3.7-4.9 %, 2 runs) and loop BAs stopped short of the revisit; not used until shown
     # harmless there
     lm_relative_decrease: float = 1e-5
+    # (M,) bool: points held at their initial value (a map loaded from disk: its alignment
+    # registers them, as it does its keyframes); None: every point is a variable
+    fixed_points: np.ndarray | None = None
 
     @property
     def levelled_anchors(self) -> np.ndarray:
@@ -102,8 +105,14 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
         values.insert(_pose_key(i), poses_wc[i])
         if levelled[i]:
             graph.add(gtsam.PoseTranslationPrior3D(_pose_key(i), poses_wc[i].translation(), center_model))
-    for j, pt in enumerate(np.asarray(p.points_slam, float)):
+    points = np.asarray(p.points_slam, float)
+    for j, pt in enumerate(points):
         values.insert(_point_key(n_poses, j), pt)
+    held_pts = np.zeros(len(points), bool) if p.fixed_points is None else np.asarray(p.fixed_points, bool)
+    if held_pts.any():  # a tight prior, as for a levelled anchor's centre: cheaper than a constraint
+        point_model = gtsam.noiseModel.Isotropic.Sigma(3, ANCHOR_CENTER_SIGMA * _scene_depth(p))
+        for j in np.flatnonzero(held_pts).tolist():
+            graph.add(gtsam.PriorFactorPoint3(_point_key(n_poses, j), points[j], point_model))
     order = np.argsort(p.obs_pose, kind="stable")
     bounds = np.searchsorted(p.obs_pose[order], np.arange(n_poses + 1))
     for i in range(n_poses):
@@ -129,6 +138,7 @@ def bundle_adjust(problem: BAProblem) -> BAResult:
     T_out = np.array([p.T_cam_slam[i] if held[i] else np.linalg.inv(res.atPose3(_pose_key(i)).matrix())
                       for i in range(n_poses)])
     P_out = np.array([res.atPoint3(_point_key(n_poses, j)) for j in range(len(p.points_slam))]).reshape(-1, 3)
+    P_out[held_pts] = points[held_pts]  # exactly where they were
     resid = reprojection_errors(p.K, T_out, P_out, p.obs_pose, p.obs_point, p.obs_uv_px)
     return BAResult(T_out, P_out, resid, e0, opt.error(), (time.perf_counter() - t0) * 1e3,
                     (time.process_time() - c0) * 1e3)

@@ -199,7 +199,7 @@ def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baselin
 
 class LocalMapper:
     def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
-                 reset_counter: int = 0) -> None:
+                 reset_counter: int = 0, keep_loaded: bool = False) -> None:
         self.K = K
         self.config = config
         self.shared = shared
@@ -217,6 +217,8 @@ class LocalMapper:
         # anywhere in it, a keyframe's neighbourhood is its covisible keyframes, not the newest
         # ones (_neighbourhood). -1: a map this process started.
         self._loaded_upto = max(slam_map.keyframes, default=-1)
+        self._loaded_pt_upto = max(slam_map.points, default=-1)  # ... and its points, held in every BA too
+        self._keep_loaded = keep_loaded  # ... and kept whole, outside the memory cap (a survey map: SlamSystem)
         self._retired_upto = -1  # keyframes with ids up to this one have left the active window
         self._n_retired = 0
         self._ba = ba_worker()
@@ -275,7 +277,7 @@ class LocalMapper:
                     self._place = PlaceIndex()
                     self.shared.place = (item.new_map, self._place)
                     self._anchors, self._retired_upto, self._n_retired = [], -1, 0
-                    self._loaded_upto = -1
+                    self._loaded_upto = self._loaded_pt_upto = -1
                     self.reset_counter += 1
                 else:
                     self._process(item)
@@ -461,7 +463,8 @@ class LocalMapper:
             g_cam, g_sigma = _gravity_arrays([m.keyframes[k] for k in all_ids])
             prob = BAProblem(self.K, np.array([m.keyframes[k].T_cam_slam for k in all_ids]), fixed,
                              np.array([m.points[p].p_slam for p in pids]), np.array(o_pose), np.array(o_pt),
-                             np.array(o_uv), max_iterations=c.ba_iterations, g_cam=g_cam, gravity_sigma_rad=g_sigma)
+                             np.array(o_uv), max_iterations=c.ba_iterations, g_cam=g_cam, gravity_sigma_rad=g_sigma,
+                             fixed_points=np.array(pids) <= self._loaded_pt_upto if self._loaded_pt_upto >= 0 else None)
         return prob, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose
 
     def _apply_ba(self, res: BAResult, job) -> None:
@@ -529,13 +532,16 @@ class LocalMapper:
         it is forgotten: features, observations, place-index entry and the points only it observed
         go; its pose stays for the trajectory. Beyond ``max_loop_anchors`` every second anchor is
         forgotten (older places keep a thinner coverage). Beyond ``max_trajectory_keyframes``
-        forgotten keyframes the oldest poses are dropped too.
+        forgotten keyframes the oldest poses are dropped too. A loaded map's keyframes kept whole
+        (``keep_loaded``) are outside all of this.
         """
         c = self.config
         m = self.map
         forgotten: list[int] = []
         with m.lock:
             ids = m.kf_ids()
+            n_kept = bisect.bisect_right(ids, self._loaded_upto) if self._keep_loaded else 0
+            ids = ids[n_kept:]
             first_active = ids[-c.max_keyframes] if len(ids) > c.max_keyframes else None
             if first_active is not None:
                 lo = bisect.bisect_right(ids, self._retired_upto)
@@ -553,7 +559,7 @@ class LocalMapper:
                     m.forget_keyframe(k)
                     forgotten.append(k)
                 self._anchors = self._anchors[::2]
-            n_poses_only = len(m.keyframes) - min(len(ids), c.max_keyframes) - len(self._anchors)
+            n_poses_only = len(m.keyframes) - n_kept - min(len(ids), c.max_keyframes) - len(self._anchors)
             if n_poses_only > c.max_trajectory_keyframes:  # trimmed to 90 % of the cap (amortised)
                 anchors = set(self._anchors)
                 old = [k for k in ids if k <= self._retired_upto and k not in anchors]

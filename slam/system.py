@@ -31,7 +31,11 @@ from slam.types import AttitudePrior, CameraModel, Frame, MapUpdate, SlamPose, T
 
 class SlamSystem:
     def __init__(self, camera: CameraModel, config: SlamConfig | None = None, initial_map: LoadedMap | None = None,
-                 reloc_timeout_s: float = 15.0) -> None:
+                 reloc_timeout_s: float = 15.0, keep_loaded: bool = False) -> None:
+        """``keep_loaded``: the keyframes of ``initial_map`` are a reference (a site's survey map):
+        the memory cap (``slam.max_keyframes``) never forgets them and applies to the keyframes
+        this run adds. Off for a map this service saved itself, which would otherwise grow with
+        every restart."""
         self.camera = camera
         self.config = config or SlamConfig()
         K = np.asarray(camera.K, float)
@@ -49,7 +53,8 @@ class SlamSystem:
             self.map_id, self.reset_counter = initial_map.header.map_id, initial_map.header.reset_counter
         self._map_ids = {self.reset_counter: self.map_id}  # reset_counter -> map_id, for MapUpdates
         self._current = (self.tracker.map, self.map_id, self.reset_counter)  # swapped as one (save_map reads it)
-        self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map, reset_counter=self.reset_counter)
+        self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map, reset_counter=self.reset_counter,
+                                  keep_loaded=keep_loaded and initial_map is not None)
         self.restored = initial_map is not None
         self._last_seq: int | None = None
 
@@ -118,6 +123,17 @@ class SlamSystem:
         read-only: call from the thread that calls ``track``. Its positions change when local
         mapping or loop closing moves the points, in the same frame as the tracked pose follows."""
         return self.tracker.pose_map
+
+    @property
+    def resuming(self) -> bool:
+        """Started in a loaded map and not relocalised in it yet (fresh map after reloc_timeout_s)."""
+        return self.tracker.resuming
+
+    def abandon_loaded_map(self) -> None:
+        """Stop waiting to relocalise in the loaded map: the next frame starts a fresh map (new
+        map_id, reset_counter + 1). No effect once relocalised. Call from the thread that calls
+        ``track``."""
+        self.tracker.abandon_resume()
 
     def current_map_key(self) -> tuple[int, int]:
         """(map_id, reset_counter) of the map being tracked now (as in SlamPose)."""

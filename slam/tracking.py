@@ -3,6 +3,7 @@ pose-only refinement, keyframe decisions and the tracking state machine (issue 4
 from __future__ import annotations
 
 import bisect
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -152,6 +153,17 @@ class Tracker:
         self.lost_frames = 0
         self._reloc_map = None
         self._reloc_timeout_s, self._reloc_deadline_t_s = float(timeout_s), None
+
+    @property
+    def resuming(self) -> bool:
+        """Started in a loaded map (``resume``) and not relocalised in it yet."""
+        return self._reloc_timeout_s is not None
+
+    def abandon_resume(self) -> None:
+        """Give the loaded map up: the next frame starts a fresh map, as when ``resume``'s time
+        budget runs out. No effect once relocalised."""
+        if self._reloc_timeout_s is not None:
+            self._reloc_deadline_t_s = -math.inf
 
     def track(self, frame: Frame, gravity: Gravity | None = None) -> TrackResult:
         """``gravity``: the autopilot's gravity direction at this frame (None: no prior); new

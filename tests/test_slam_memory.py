@@ -185,3 +185,41 @@ def test_place_index_drops_removed_entries():
     assert len(idx) == 19 and 0 < idx.nbytes() == without_7.nbytes() < 300 * 32 * 19
     assert all(c.kf_id != 7 for c in idx.query(descs[7]))
     assert idx.query(descs[8])[0].kf_id == 8
+
+
+@pytest.mark.parametrize("keep_loaded", [True, False])
+def test_a_survey_maps_keyframes_are_outside_the_memory_cap(keep_loaded):
+    """A loaded map kept whole (a site's survey map, SlamSystem keep_loaded) keeps every keyframe
+    while the flight's own keyframes go through the cap; a map saved by the service itself
+    (keep_loaded off) is capped as a whole, or it would grow with every restart."""
+    world, m = StripWorld(), SlamMap()
+    survey = LocalMapper(K, SlamConfig(**{**CAPS, "max_keyframes": 40}), Shared(active_map=m), m)
+    try:
+        with m.lock:
+            m.add_keyframe(world.keyframe(m, 0.0, 0.0))
+        for n in range(1, 30):
+            survey.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
+            assert survey.wait_idle(60)
+    finally:
+        survey.close()
+    with m.lock:
+        loaded = m.kf_ids()
+        assert len(loaded) == 30 and all(m.keyframes[k].has_features for k in loaded)
+    mapper = LocalMapper(K, SlamConfig(**CAPS), Shared(active_map=m), m, keep_loaded=keep_loaded)
+    try:
+        for n in range(30, 60):
+            mapper.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
+            assert mapper.wait_idle(60)
+        mem = mapper.memory()
+    finally:
+        mapper.close()
+    with m.lock:
+        whole_loaded = sum(m.keyframes[k].has_features for k in loaded if k in m.keyframes)
+        whole_new = sum(kf.has_features for k, kf in m.keyframes.items() if k > loaded[-1])
+    c = mapper.config
+    assert whole_new <= c.max_keyframes + c.max_loop_anchors
+    if keep_loaded:
+        assert whole_loaded == 30 and mem.place_entries >= 30 + c.max_keyframes
+    else:
+        assert whole_loaded <= 10, whole_loaded  # all but the loop anchors forgotten
+        assert mem.map.keyframes_with_features <= c.max_keyframes + c.max_loop_anchors

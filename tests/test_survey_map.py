@@ -10,6 +10,7 @@ The COLMAP path end to end: ``pytest -m slow tests/test_gis_cli.py -k colmap``.
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -171,3 +172,69 @@ def test_service_starts_in_the_survey_map_and_fixes_without_gnss(survey, tmp_pat
     # tracked in the survey map: first frame 0.1-0.7 m off, 1.1-3.3 m mean over 7 runs here (before map
     # reuse: 10-30 m off within 2 s)
     assert err[0] < 1.5 and err.mean() < 6.0
+
+
+def _fly(loc, flight, n: int, with_gnss: bool):
+    """Feed ``n`` frames of ``flight`` to the Localizer on the camera's clock; GNSS (the newest
+    sample, trusted when it is a 3D fix) when ``with_gnss``. Returns (records, truth ECEF)."""
+    from companion.pipeline import PipelineInput, attitude_prior
+
+    t0 = time.monotonic()
+    recs, truth, gnss = [], [], None
+    for k, st in enumerate(flight.steps()):
+        if k == n:
+            break
+        gnss = replace(st.gnss[-1], t_s=t0 + st.gnss[-1].t_s) if with_gnss and st.gnss else gnss
+        frame = replace(st.frame, t_s=t0 + st.frame.t_s)
+        prior = attitude_prior(replace(st.attitude[-1], t_s=t0 + st.attitude[-1].t_s)) if st.attitude else None
+        recs.append(loc.process(PipelineInput(frame, gnss, gnss is not None and gnss.fix_type >= 3, prior)))
+        truth.append(st.truth.p_body_ecef_m)
+    return recs, truth
+
+
+@pytest.mark.parametrize("survey_elsewhere", [False, True])
+def test_survey_map_is_given_up_when_trusted_gnss_puts_the_vehicle_beyond_its_reach(survey, tmp_path, survey_elsewhere) -> None:
+    """Taking off with good GNSS: over the surveyed area SLAM relocalises in the survey map as
+    without GNSS; where GNSS puts the vehicle 2 km from every survey keyframe (here: the survey's
+    T_rough moved 2 km east, the same images), the survey map is given up on the first frame and a
+    fresh map is bootstrapped from GNSS, instead of no SLAM map for gis.survey_reloc_timeout_s."""
+    from companion.app import build_localizer
+    from companion.config import AppConfig, SupervisorConfig
+    from companion.service import _restore_alignment, _survey_map
+    from companion.sim import make_scenario, scenario_spec
+    from companion.sim.gnss import GnssSpec
+    from gis.sim3 import compose
+    from gis.types import AlignmentSource
+
+    cache, site, sc, _, _ = survey
+    restored = _survey_map(cache, sc.camera, site)
+    survey_id = restored.loaded.header.map_id
+    if survey_elsewhere:
+        d_ecef = sc.origin.R_ecef_enu @ np.array([2000.0, 0.0, 0.0])
+        a = restored.alignment
+        restored = replace(restored, alignment=replace(a, T_ecef_slam=compose(Sim3(1.0, np.eye(3), d_ecef), a.T_ecef_slam)))
+    spec = scenario_spec("nominal")
+    spec = replace(spec, name="gnss-good", flight=replace(spec.flight, altitude_m=90.0), gnss=GnssSpec(base="dgps"))
+    flight = make_scenario(spec=spec, seed=0, fps=FPS, n_frames=N_FLIGHT)
+    cfg = AppConfig(supervisor=SupervisorConfig(state_dir=tmp_path))
+    loc = build_localizer(cfg, flight.camera, flight.T_body_cam, None, initial_map=restored.loaded,
+                          reloc_timeout_s=cfg.gis.survey_reloc_timeout_s)
+    _restore_alignment(cfg, loc, restored)
+    logged = []
+    loc.on_event = lambda t_s, text: logged.append(text)
+    try:
+        recs, truth = _fly(loc, flight, 20 if not survey_elsewhere else N_FLIGHT, with_gnss=True)
+    finally:
+        loc.close()
+    given_up = [e for e in logged if e.startswith("survey map given up")]
+    if not survey_elsewhere:
+        assert any(r.pose.state.has_pose for r in recs[:2]) and recs[1].pose.map_id == survey_id
+        assert not given_up
+        return
+    assert len(given_up) == 1 and 1500 <= int(re.search(r"vehicle (\d+) m from", given_up[0]).group(1)) <= 2100
+    assert all(r.pose.map_id != survey_id for r in recs)  # never relocalised in it
+    # a fresh map, tracked and collecting GNSS pairs for its bootstrap (which needs 40 m of track:
+    # this flight's first 26 s; the bootstrap itself is tested in test_gis_align)
+    fresh = [r for r in recs if r.pose.state.has_pose]
+    assert len(fresh) >= 50 and loc.bootstrap.map_key == (fresh[-1].pose.map_id, fresh[-1].pose.reset_counter)
+    assert len(loc.bootstrap.p_slam) >= 10
