@@ -169,9 +169,10 @@ def test_service_starts_in_the_survey_map_and_fixes_without_gnss(survey, tmp_pat
     assert recs[0].pose.map_id == restored.loaded.header.map_id
     assert len(fixed) >= 0.9 * len(recs)
     assert np.all(err <= 3 * acc), err
-    # tracked in the survey map: first frame 0.1-0.7 m off, 1.1-3.3 m mean over 7 runs here (before map
+    # tracked in the survey map, its points held in BA: 0.27-0.73 m mean, max 0.6-1.2 m over 8 surveys (with
+    # the survey points free in BA: 1.1-3.3 m mean, and 2 of 13 surveys drifted to 20-30 m; before map
     # reuse: 10-30 m off within 2 s)
-    assert err[0] < 1.5 and err.mean() < 6.0
+    assert err[0] < 1.5 and err.mean() < 1.5 and err.max() < 3.0
 
 
 def _fly(loc, flight, n: int, with_gnss: bool):
