@@ -47,7 +47,7 @@ def alignment_json(a: Alignment, site_id: str, now_mono_s: float | None = None, 
         "reset_counter": a.reset_counter, "map_id": a.map_id, "information_6x6": np.asarray(a.information_6x6).tolist(),
         "sigma_m": a.sigma_m, "fitness": a.fitness, "rmse_m": a.rmse_m, "n_points": a.n_points,
         "center_slam": None if a.center_slam is None else np.asarray(a.center_slam, float).tolist(),
-        "scale_sigma": a.scale_sigma,
+        "scale_sigma": a.scale_sigma, "drift_free_radius_m": a.drift_free_radius_m,
     }
 
 
@@ -61,7 +61,7 @@ def alignment_from_json(d: dict, t_offset_s: float = 0.0) -> Alignment:
         t_s=float(d["t_s"]) + t_offset_s, reset_counter=int(d["reset_counter"]), information_6x6=info,
         sigma_m=float(d["sigma_m"]), fitness=float(d["fitness"]), rmse_m=float(d["rmse_m"]), n_points=int(d["n_points"]),
         map_id=int(d["map_id"]), center_slam=None if d["center_slam"] is None else np.asarray(d["center_slam"], float),
-        scale_sigma=float(d["scale_sigma"]),
+        scale_sigma=float(d["scale_sigma"]), drift_free_radius_m=float(d.get("drift_free_radius_m", 0.0)),
     )
 
 

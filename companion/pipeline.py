@@ -960,7 +960,7 @@ class Localizer:
         if a.center_slam is None:
             return a.sigma_m
         d_m = a.T_ecef_slam.scale * float(np.linalg.norm(np.asarray(c_slam) - a.center_slam))
-        return float(np.hypot(a.sigma_m, (self.globalizer.slam_drift_fraction + a.scale_sigma) * d_m))
+        return float(np.hypot(a.sigma_m, self.globalizer.slam_drift_fraction * a.drift_distance_m(d_m) + a.scale_sigma * d_m))
 
     def gnss_offset_m(self, now_s: float, max_age_s: float = 1.0) -> float | None:
         """How far GNSS sits from our position, horizontally: the running mean (``ema_s``) of the

@@ -80,16 +80,19 @@ def survey_alignment(sm: SurveyMap, T_ecef_slam: Sim3, sigma_m: float) -> Alignm
     """T_rough of the survey map as an Alignment about the centre of its keyframes: isotropic
     position 1-σ ``sigma_m`` (metres) there, and rotation and scale 1-σ of sigma_m over the
     keyframes' RMS distance from it (a fit that is ``sigma_m`` off is that much off across the
-    survey, not only at its centre); the Globalizer adds its drift term for the distance from
-    the centre."""
+    survey, not only at its centre). SLAM drift counts only beyond the keyframes' farthest
+    distance from the centre (``drift_free_radius_m``): the service holds the survey map's
+    keyframes and points, so within it the flight is tracked against the map T_rough registers."""
     map_id, reset_counter = sm.slam.current_map_key()
     c = np.array(list(sm.keyframe_centres.values()))
     centre = np.median(c, axis=0)
     radius_m = max(T_ecef_slam.scale * float(np.sqrt(np.mean(np.sum((c - centre) ** 2, axis=1)))), sigma_m)
     rel = sigma_m / radius_m
     info = np.diag([1 / rel**2] * 3 + [1 / sigma_m**2] * 3)
+    # the service holds the survey map (slam/mapping.py): no SLAM drift across it, only beyond it
+    extent_m = T_ecef_slam.scale * float(np.max(np.linalg.norm(c - centre, axis=1)))
     return Alignment(T_ecef_slam, AlignmentSource.ROUGH, time.monotonic(), reset_counter, info, float(sigma_m),
-                     map_id=map_id, center_slam=centre, scale_sigma=rel)
+                     map_id=map_id, center_slam=centre, scale_sigma=rel, drift_free_radius_m=extent_m)
 
 
 def save_survey_map(sm: SurveyMap, path: Path, alignment: Alignment, site_id: str) -> SavedMap:

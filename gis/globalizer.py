@@ -3,7 +3,8 @@
 The covariance is propagated, not guessed: the alignment's information (Eq. 8–10, about its
 centre) is inverted and carried to the vehicle with the lever arm d from that centre
 (J = [−[d]×, I]), plus the scale uncertainty (scale_sigma·|d|), SLAM drift away from the
-alignment's centre (slam_drift_fraction·|d|), the GIS model's georeference accuracy
+alignment's centre (slam_drift_fraction·|d|, only beyond its drift_free_radius_m: a survey map's
+T_rough), the GIS model's georeference accuracy
 (model_sigma_m, for GIS-based alignments; the Localizer replaces it with the correction's σ when
 the model is found metres off against GNSS, gis.align.georef), recent jumps of the SLAM track (below) and a floor. No
 fix when tracking has no pose, no alignment was accepted, or the alignment belongs to another
@@ -122,7 +123,7 @@ class Globalizer:
             cov_enu = np.eye(3) * a.sigma_m**2
         else:
             cov_enu = J @ cov6 @ J.T
-        iso = (a.scale_sigma * dist) ** 2 + (self.slam_drift_fraction * dist) ** 2 + self.sigma_floor_m**2
+        iso = (a.scale_sigma * dist) ** 2 + (self.slam_drift_fraction * a.drift_distance_m(dist)) ** 2 + self.sigma_floor_m**2
         if a.source is not AlignmentSource.GNSS:  # GIS-based: the model's own georeference error
             iso += self.model_sigma_m**2
         R = R_ned_ecef @ R_ecef_enuC

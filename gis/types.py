@@ -35,6 +35,10 @@ class Alignment:
     center_slam: (3,) SLAM-frame point the registration was centred on (its crop centre; for a GNSS
     fit, the camera at its newest pair, where SLAM drift beyond the fitted track starts), or None;
     scale_sigma: relative 1-σ of the similarity's scale (monocular scale), dimensionless.
+    drift_free_radius_m: within this distance (metres) of center_slam the alignment registers the
+    SLAM map itself, so SLAM drift adds nothing there: a survey map's T_rough, fitted on every
+    keyframe of a map that the flight does not move (its keyframes and points are held). 0: drift
+    accrues from center_slam on (every registration and GNSS fit).
     """
 
     T_ecef_slam: Sim3
@@ -49,6 +53,11 @@ class Alignment:
     map_id: int = 0
     center_slam: np.ndarray | None = None
     scale_sigma: float = 0.0
+    drift_free_radius_m: float = 0.0
+
+    def drift_distance_m(self, dist_m: float) -> float:
+        """The part of a distance (metres) from center_slam over which SLAM drift accrues."""
+        return max(0.0, dist_m - self.drift_free_radius_m)
 
     def covariance_6x6(self) -> np.ndarray:
         """information_6x6 inverted, eigenvalues floored at 1e-12 of the largest (a direction the

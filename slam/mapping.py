@@ -636,8 +636,9 @@ class LocalMapper:
             ids = m.kf_ids()
             start, cur = ids.index(old_id), ids.index(kf.kf_id)
             own = set(kf.point_ids[kf.point_ids >= 0].tolist())
+            # (never a loaded map's keyframes: its alignment registers them where they are)
             window = {k for k in ids[max(cur - w, start + 1):cur]
-                      if len(own & set(m.keyframes[k].point_ids.tolist())) >= c.loop_min_inliers // 2}
+                      if k > self._loaded_upto and len(own & set(m.keyframes[k].point_ids.tolist())) >= c.loop_min_inliers // 2}
             window.add(kf.kf_id)
             moved: set[int] = set()
             for k in window:

@@ -3,6 +3,7 @@ GNSS bootstrap; Globalizer against truth."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -141,6 +142,28 @@ def test_globalizer_no_fix_without_pose_alignment_or_same_map():
     assert g.fix(_pose(T, TrackingState.LOST)) is None
     assert g.fix(_pose(T, reset=1)) is None
     assert g.fix(_pose(T)) is not None
+
+
+def test_globalizer_counts_slam_drift_only_beyond_the_drift_free_radius():
+    """A survey map's T_rough registers the whole (held) survey map: within drift_free_radius_m of
+    its centre a fix claims what the alignment alone gives (as with no drift at all), beyond it
+    the drift of the distance past the radius."""
+    a = _perturbed()
+    info = np.diag([1e8] * 3 + [100.0] * 3)  # rotation 1e-4 rad, translation 0.1 m
+    a = Alignment(a.T_ecef_slam, a.source, 0.0, 0, info, 0.1, center_slam=np.zeros(3))
+    survey = replace(a, drift_free_radius_m=150.0)
+
+    def h_acc(alignment, dist_m, drift=0.02):
+        g = Globalizer(np.eye(4), slam_drift_fraction=drift)
+        g.update_alignment(alignment)
+        T = np.eye(4)
+        T[0, 3] = dist_m / alignment.T_ecef_slam.scale
+        return g.fix(_pose(T)).h_acc_m
+
+    assert h_acc(survey, 100.0) == pytest.approx(h_acc(a, 100.0, drift=0.0), rel=1e-9)
+    assert h_acc(survey, 100.0) < h_acc(a, 100.0) - 1.0  # 2 m of drift claimed without the radius
+    no_drift, beyond = h_acc(a, 250.0, drift=0.0), h_acc(survey, 250.0)
+    assert np.sqrt(beyond**2 - no_drift**2) == pytest.approx(0.02 * 100.0, rel=0.05)  # the 100 m past the radius
 
 
 def test_globalizer_widens_the_accuracy_after_a_slam_jump():

@@ -2,6 +2,8 @@
 writes what it registered, the files round-trip, and a replay decides as the flight did."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -25,8 +27,9 @@ def city() -> GisModel:
 def _assert_same_alignment(a: Alignment, b: Alignment) -> None:
     np.testing.assert_array_equal(a.T_ecef_slam.matrix(), b.T_ecef_slam.matrix())
     np.testing.assert_array_equal(a.information_6x6, b.information_6x6)
-    assert (a.source, a.t_s, a.reset_counter, a.sigma_m, a.fitness, a.rmse_m, a.n_points, a.map_id, a.scale_sigma) == \
-           (b.source, b.t_s, b.reset_counter, b.sigma_m, b.fitness, b.rmse_m, b.n_points, b.map_id, b.scale_sigma)
+    fields = ("source", "t_s", "reset_counter", "sigma_m", "fitness", "rmse_m", "n_points", "map_id", "scale_sigma",
+              "drift_free_radius_m")
+    assert [getattr(a, f) for f in fields] == [getattr(b, f) for f in fields]
     assert (a.center_slam is None and b.center_slam is None) or np.array_equal(a.center_slam, b.center_slam)
 
 
@@ -39,7 +42,7 @@ def _enu_axes() -> np.ndarray:
 
 def test_a_record_reads_back_as_written(tmp_path):
     cam = np.array([10.0, -5.0, 80.0])
-    prior = _prior_about(cam, (1.0, 0.5, 0.2))
+    prior = replace(_prior_about(cam, (1.0, 0.5, 0.2)), drift_free_radius_m=120.0)  # (a survey map's T_rough)
     result = Alignment(prior.T_ecef_slam, AlignmentSource.FINE, 12.5, 2, 3 * np.eye(6), 0.8, 0.31, 0.25, 640, 1, None, 0.004)
     job = RegistrationJob(12.5, np.random.default_rng(0).normal(size=(50, 3)), prior, _slam(cam), 512.25, 0.4,
                           GeorefCorrection(np.array([2.0, -1.0, 0.3]), 0.5, 4))

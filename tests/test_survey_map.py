@@ -198,14 +198,14 @@ def test_survey_map_is_given_up_when_trusted_gnss_puts_the_vehicle_beyond_its_re
     """Taking off with good GNSS: over the surveyed area SLAM relocalises in the survey map as
     without GNSS; where GNSS puts the vehicle 2 km from every survey keyframe (here: the survey's
     T_rough moved 2 km east, the same images), the survey map is given up on the first frame and a
-    fresh map is bootstrapped from GNSS, instead of no SLAM map for gis.survey_reloc_timeout_s."""
+    fresh map starts collecting GNSS pairs for its bootstrap, instead of no SLAM map for
+    gis.survey_reloc_timeout_s."""
     from companion.app import build_localizer
     from companion.config import AppConfig, SupervisorConfig
     from companion.service import _restore_alignment, _survey_map
     from companion.sim import make_scenario, scenario_spec
     from companion.sim.gnss import GnssSpec
     from gis.sim3 import compose
-    from gis.types import AlignmentSource
 
     cache, site, sc, _, _ = survey
     restored = _survey_map(cache, sc.camera, site)

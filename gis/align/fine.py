@@ -613,11 +613,11 @@ class FineTuner:
         cov = np.zeros((7, 7))
         cov[:6, :6] = J @ cov6 @ J.T
         dist = float(np.linalg.norm(d))
-        iso = (cfg.slam_drift_fraction * dist) ** 2 + (initial.scale_sigma * dist) ** 2
+        iso = (cfg.slam_drift_fraction * initial.drift_distance_m(dist)) ** 2 + (initial.scale_sigma * dist) ** 2
         if initial.source is AlignmentSource.GNSS:  # GNSS vs the model: the model's georeference error
             iso += self.model_sigma_m**2
         cov[3:6, 3:6] += iso * np.eye(3)
-        scale_drift = cfg.slam_scale_drift_per_100m * dist / 100.0  # the map's scale drifts as it grows
+        scale_drift = cfg.slam_scale_drift_per_100m * initial.drift_distance_m(dist) / 100.0  # the map's scale drifts as it grows
         cov[6, 6] = initial.scale_sigma**2 + scale_drift**2 if initial.scale_sigma > 0 else UNKNOWN_VAR
         return cov
 

@@ -62,19 +62,21 @@ def _alignment_arrays(prefix: str, a: Alignment | None) -> dict[str, np.ndarray]
     return {f"{prefix}T": np.r_[T.scale, np.ravel(T.R), T.t], f"{prefix}source": np.array(a.source.value),
             f"{prefix}info": np.asarray(a.information_6x6, float),
             f"{prefix}scalars": np.array([a.t_s, a.reset_counter, a.sigma_m, a.fitness, a.rmse_m, a.n_points, a.map_id,
-                                          a.scale_sigma], float),
+                                          a.scale_sigma, a.drift_free_radius_m], float),
             f"{prefix}center": np.full(3, np.nan) if a.center_slam is None else np.asarray(a.center_slam, float)}
 
 
 def _alignment_from(d, prefix: str) -> Alignment | None:
     if f"{prefix}T" not in d:
         return None
-    t_s, reset, sigma, fitness, rmse, n_points, map_id, scale_sigma = (float(x) for x in d[f"{prefix}scalars"])
+    s = [float(x) for x in d[f"{prefix}scalars"]]
+    t_s, reset, sigma, fitness, rmse, n_points, map_id, scale_sigma = s[:8]
+    drift_free_m = s[8] if len(s) > 8 else 0.0  # (journals written before the field: 8 scalars)
     center = d[f"{prefix}center"]
     T = d[f"{prefix}T"]
     return Alignment(Sim3(float(T[0]), T[1:10].reshape(3, 3).copy(), T[10:13].copy()), AlignmentSource(str(d[f"{prefix}source"])), t_s, int(reset),
                      np.array(d[f"{prefix}info"]), sigma, fitness, rmse, int(n_points), int(map_id),
-                     None if np.isnan(center).any() else np.array(center), scale_sigma)
+                     None if np.isnan(center).any() else np.array(center), scale_sigma, drift_free_m)
 
 
 def _opt(x: float | None) -> float:
