@@ -68,6 +68,7 @@ def test_service_at_a_surveyed_site_sends_fixes_with_no_gnss_ever(tmp_path: Path
     print(summary)
     diag = summary + "\n" + text[-3000:]
     assert alive and "survey_map_loaded" in text, diag
+    assert "alignment rough accepted (restored from the site's survey map" in text, diag  # the timeline is journaled
     assert len(fixes) >= N_FIXES, diag
     assert fixes[0][0] - t_ready < 10.0, diag  # relocalised on the first frames (the pipeline is up at READY)
     assert all(e <= 3.0 * hacc for _, e, hacc in err), diag
