@@ -114,6 +114,9 @@ def register_centres(src: dict[str, np.ndarray], dst: dict[str, np.ndarray], min
         if new.sum() < min_pairs or (new == keep).all():
             break
         keep = new
+    else:  # trimmed on the last pass: the similarity of the pairs kept, not of the set before it
+        T = umeyama(a[keep], b[keep], with_scale=True)
+        r = np.linalg.norm(T.apply(a) - b, axis=1)
     rmse_rel = float(np.sqrt(np.mean(r[keep] ** 2))) / extent
     if rmse_rel > max_rmse_rel:
         raise SurveyRegistrationFailed(f"the survey map and the reconstruction disagree: camera centres {100 * rmse_rel:.1f} % "
