@@ -86,13 +86,13 @@ def survey_alignment(sm: SurveyMap, T_ecef_slam: Sim3, sigma_m: float) -> Alignm
     map_id, reset_counter = sm.slam.current_map_key()
     c = np.array(list(sm.keyframe_centres.values()))
     centre = np.median(c, axis=0)
-    radius_m = max(T_ecef_slam.scale * float(np.sqrt(np.mean(np.sum((c - centre) ** 2, axis=1)))), sigma_m)
+    d_m = T_ecef_slam.scale * np.linalg.norm(c - centre, axis=1)  # keyframes from the centre, metres
+    radius_m = max(float(np.sqrt(np.mean(d_m**2))), sigma_m)
     rel = sigma_m / radius_m
     info = np.diag([1 / rel**2] * 3 + [1 / sigma_m**2] * 3)
     # the service holds the survey map (slam/mapping.py): no SLAM drift across it, only beyond it
-    extent_m = T_ecef_slam.scale * float(np.max(np.linalg.norm(c - centre, axis=1)))
     return Alignment(T_ecef_slam, AlignmentSource.ROUGH, time.monotonic(), reset_counter, info, float(sigma_m),
-                     map_id=map_id, center_slam=centre, scale_sigma=rel, drift_free_radius_m=extent_m)
+                     map_id=map_id, center_slam=centre, scale_sigma=rel, drift_free_radius_m=float(d_m.max()))
 
 
 def save_survey_map(sm: SurveyMap, path: Path, alignment: Alignment, site_id: str) -> SavedMap:

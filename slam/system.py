@@ -54,7 +54,7 @@ class SlamSystem:
         self._map_ids = {self.reset_counter: self.map_id}  # reset_counter -> map_id, for MapUpdates
         self._current = (self.tracker.map, self.map_id, self.reset_counter)  # swapped as one (save_map reads it)
         self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map, reset_counter=self.reset_counter,
-                                  keep_loaded=keep_loaded and initial_map is not None)
+                                  keep_loaded=keep_loaded)
         self.restored = initial_map is not None
         self._last_seq: int | None = None
 
