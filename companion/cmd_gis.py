@@ -16,6 +16,14 @@ _CONFIG = typer.Option(None, "--config", "-c", help="YAML config file (default: 
 _CACHE = typer.Option(None, "--cache-dir", help="GIS cache directory (default: gis.cache_dir from the config)")
 
 
+def _site_id(site: Optional[str]) -> Optional[str]:
+    from gis.config import AUTO_SITE
+
+    if site == AUTO_SITE:
+        raise typer.BadParameter(f"{AUTO_SITE!r} is reserved: gis.site: {AUTO_SITE} means the site covering the position")
+    return site
+
+
 def _app_config(config: Optional[Path]):
     from companion.config import ConfigError, load_config
 
@@ -40,7 +48,7 @@ def gis_import(
     path: Path = typer.Argument(..., help="model file (PLY/OBJ/GLB + .georef.json, LAS/LAZ, CityJSON, GeoJSON, OSM .osm.pbf) or 3D Tiles directory"),
     ground_h_msl_m: Optional[float] = typer.Option(None, "--ground-h-msl-m", help="ground height above MSL for footprints without heights (OSM); default gis.footprint_ground_h_msl_m"),
     ground_dem: Optional[Path] = typer.Option(None, "--ground-dem", help="terrain model (GeoTIFF DTM) under footprints without heights, instead of --ground-h-msl-m; default gis.footprint_ground_dem"),
-    site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)"),
+    site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)", callback=_site_id),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:
@@ -137,13 +145,13 @@ def gis_fetch(
     lon: float = typer.Option(..., "--lon", help="rough longitude, degrees WGS-84"),
     source: List[str] = typer.Option(..., "--source", help="model file, directory or http(s):// 3D Tiles tileset URL (repeatable)"),
     radius_m: Optional[float] = typer.Option(None, "--radius-m", help="fetch radius (default gis.fetch_radius_m)"),
-    site: Optional[str] = typer.Option(None, "--site"),
+    site: Optional[str] = typer.Option(None, "--site", help="site id (default: file name + hash)", callback=_site_id),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:
     """Obtain the models within a radius of a rough position (TerraSLAM §6) and cache them."""
     from gis.model import GisFormatError
-    from gis.providers import FetchError, HttpTilesProvider, LocalProvider, fetch_model
+    from gis.providers import FetchError, fetch_model, providers_for
 
     from rich.console import Console
 
@@ -154,11 +162,7 @@ def gis_fetch(
         def say(line: str) -> None:
             status.update(line)
             console.log(line)
-        providers = [
-            HttpTilesProvider(s, cache.root / "downloads", cfg.fetch_timeout_s, cfg.sample_spacing_m, progress=say)
-            if s.startswith(("http://", "https://")) else LocalProvider((Path(s),), cfg.sample_spacing_m, cfg.footprint_ground)
-            for s in source
-        ]
+        providers = providers_for(source, cfg, cache.root / "downloads", progress=say)
         try:
             model = fetch_model(providers, lat, lon, radius_m or cfg.fetch_radius_m, ",".join(source))
         except (FetchError, GisFormatError) as e:
@@ -174,7 +178,7 @@ def align_offline(
     stride: int = typer.Option(4, "--stride", min=1, help="use every n-th frame (and every SLAM keyframe) for the COLMAP reconstruction"),
     radius_m: float = typer.Option(250.0, "--radius-m", help="GIS search radius around the rough position"),
     sigma_m: float = typer.Option(1.5, "--sigma-m", min=0.1, max=50.0, help="1-σ (m) of T_rough's position that the service claims when it starts in the survey map (fine-tuning replaces it)"),
-    site: Optional[str] = typer.Option(None, "--site", help="site id (default: the dataset name)"),
+    site: Optional[str] = typer.Option(None, "--site", help="site id (default: the dataset name)", callback=_site_id),
     config: Optional[Path] = _CONFIG,
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:

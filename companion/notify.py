@@ -1,4 +1,4 @@
-"""systemd notify protocol (sd_notify(3)): READY=1, STATUS=..., WATCHDOG=1, STOPPING=1.
+"""systemd notify protocol (sd_notify(3)): READY=1, STATUS=..., EXTEND_TIMEOUT_USEC=..., WATCHDOG=1, STOPPING=1.
 
 One datagram per call to the AF_UNIX socket named by ``$NOTIFY_SOCKET`` — a filesystem path, or an
 abstract socket when it starts with ``@``. Written with the socket module: the protocol is a single
@@ -47,6 +47,12 @@ def ready(status: str | None = None, environ: Mapping[str, str] | None = None) -
 def status(text: str, environ: Mapping[str, str] | None = None) -> bool:
     """One-line status shown by ``systemctl status``."""
     return notify(f"STATUS={text.splitlines()[0] if text else ''}", environ)
+
+
+def extend_timeout(seconds: float, environ: Mapping[str, str] | None = None) -> bool:
+    """Startup goes on for up to ``seconds`` more from now (EXTEND_TIMEOUT_USEC, systemd >= 236):
+    sent while the service waits on something outside it, so TimeoutStartSec does not kill it."""
+    return notify(f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}", environ)
 
 
 def watchdog(environ: Mapping[str, str] | None = None) -> bool:

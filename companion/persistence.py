@@ -23,7 +23,7 @@ from companion.config import AppConfig
 from companion.logs import log_event
 from gis.sim3 import Sim3
 from gis.types import Alignment, AlignmentSource
-from slam.persist import LoadedMap, MapFileError, clock_offset_s, load_map_file
+from slam.persist import LoadedMap, MapFileError, clock_offset_s, load_map_file, read_map_header
 from slam.types import CameraModel
 
 log = logging.getLogger("terraslam.persistence")
@@ -117,6 +117,21 @@ def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | 
         return Restored(loaded, None, age_s, f"saved alignment is {age_s:.0f} s old (persistence.max_restore_age_s "
                                              f"{cfg.persistence.max_restore_age_s:g} s)")
     return Restored(loaded, a, age_s)
+
+
+def saved_site(cfg: AppConfig) -> tuple[str, float] | None:
+    """(GIS site, age s) of the alignment saved with the map when ``load_saved`` would restore it
+    for that site (its map's, not older than ``persistence.max_restore_age_s``); None otherwise,
+    also for an unreadable file (``load_saved`` reports that). Reads the header only: no camera
+    needed."""
+    try:
+        h = read_map_header(map_path(cfg))
+        d = h.attachments["alignment"]
+        age_s = time.time() - float(d["accepted_wall_s"])
+        ok = (int(d["map_id"]), int(d["reset_counter"])) == (h.map_id, h.reset_counter) and isinstance(d["site_id"], str)
+    except (MapFileError, KeyError, TypeError, ValueError):
+        return None
+    return (d["site_id"], age_s) if ok and age_s <= cfg.persistence.max_restore_age_s else None
 
 
 def load_survey(path: Path, camera: CameraModel, site_id: str) -> Restored:

@@ -27,11 +27,11 @@ import numpy as np
 
 from companion.config import AppConfig
 from companion.logs import log_event, setup_logging
-from companion.persistence import MapSaver, load_saved, load_survey, map_path
+from companion.persistence import MapSaver, load_saved, load_survey, map_path, saved_site
 from companion.pipeline import PipelineInput, SurveyArea, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
-from mavlink_bridge.types import GnssQuality
+from mavlink_bridge.types import GnssQuality, GnssSample
 
 if TYPE_CHECKING:
     from gis.cache import GisCache
@@ -135,23 +135,115 @@ def _restore_georef(cache, site_id: str, localizer) -> int:
     return ev.n
 
 
-def load_gis_model(cfg: AppConfig, cache: GisCache) -> tuple[GisModel, str, Path]:
-    """The configured GIS model, mapped from the GIS cache (gis.cache: paged in only where it is
-    cropped; a model larger than the board's RAM works), its site id and the file a replay loads
-    it from. ``gis.site``: that site as `gis import` / `gis fetch` stored it (GisFormatError when
-    it is not there or fails its hash). ``gis.model``: a file already imported unchanged with the
-    same settings is not parsed again (a LAZ or a tileset takes minutes); else it is loaded, saved
-    and mapped back, so the parsed copy is freed; a cached copy that fails its hash check is
-    imported again."""
+class NoPositionError(RuntimeError):
+    """gis.site: auto found no rough position to look the site up at."""
+
+
+def wait_for_trusted_gnss(bridge, timeout_s: float, poll_s: float = 0.2) -> GnssSample | None:
+    """The autopilot's first GNSS position our monitor trusts, waiting up to ``timeout_s`` (systemd
+    is told each 10 s that startup goes on, and why); None when none came."""
+    from companion import notify
+
+    deadline = time.monotonic() + timeout_s
+    next_note = 0.0
+    while True:
+        st = bridge.gnss_status()
+        if st.trusted and st.sample is not None:
+            return st.sample
+        now = time.monotonic()
+        if now >= deadline:
+            return None
+        if now >= next_note:
+            why = "; ".join(st.reasons) or st.quality.value
+            notify.status(f"gis.site auto: waiting for a trusted GNSS position ({why}); {deadline - now:.0f} s left")
+            notify.extend_timeout(30.0)
+            next_note = now + 10.0
+        time.sleep(poll_s)
+
+
+def choose_site(cfg: AppConfig, cache: GisCache, bridge) -> str:
+    """``gis.site: auto``: the GIS site this flight uses (TerraSLAM §6: Pre-fetch the cached site
+    covering the rough position, else Fetch it from ``gis.fetch_sources`` and SaveCache). The rough
+    position is, in this order: ``gis.rough_position_deg``; else, with no position needed, the
+    site of the saved SLAM map when its alignment is fresh enough to restore (a restart in flight,
+    GNSS perhaps jammed); else the autopilot's first trusted GNSS position (the bridge starts here
+    for it), within ``gis.position_wait_s``. Raises NoPositionError, gis.providers.NoSiteError,
+    FetchError or GisFormatError."""
+    from companion import notify
+    from gis.providers import site_at
+
+    g = cfg.gis
+    saved = saved_site(cfg) if cfg.persistence.enabled and g.rough_position_deg is None else None
+    if g.rough_position_deg is not None:
+        (lat, lon), where = g.rough_position_deg, "gis.rough_position_deg"
+    elif saved is not None and _cached(cache, saved[0]):
+        log_event(log, "gis_site", f"GIS site {saved[0]}: the saved SLAM map's (its alignment is {saved[1]:.0f} s old)",
+                  site=saved[0])
+        return saved[0]
+    else:
+        sample = wait_for_trusted_gnss(bridge.start(), g.position_wait_s)
+        if sample is None:
+            raise NoPositionError(f"gis.site auto: no trusted GNSS position from the autopilot within gis.position_wait_s "
+                                  f"({g.position_wait_s:g} s) and no gis.rough_position_deg: cannot choose the GIS site")
+        (lat, lon), where = (sample.lat_deg, sample.lon_deg), "trusted GNSS"
+
+    def progress(line: str) -> None:
+        log.info("fetching the GIS site: %s", line)
+        notify.status(f"gis.site auto: fetching ({line})")
+        notify.extend_timeout(120.0)
+
+    site_id, how = site_at(cache, lat, lon, g, progress)
+    log_event(log, "gis_site", f"GIS site {site_id} ({how}) covers {lat:.6f}, {lon:.6f} ({where})", site=site_id)
+    return site_id
+
+
+def _cached(cache: GisCache, site_id: str) -> bool:
+    try:
+        cache.model_file(site_id)
+    except KeyError:
+        return False
+    return True
+
+
+class _RecorderTaps:
+    """What the bridge hands the flight recorder. The bridge may start before the recorder opens
+    (gis.site: auto waits for its GNSS to choose the site the recording names); what comes before
+    that, before any frame, has nothing to be recorded with."""
+
+    def __init__(self) -> None:
+        self.recorder = None
+
+    def gnss(self, sample) -> None:
+        if self.recorder is not None:
+            self.recorder.on_gnss(sample)
+
+    def attitude(self, att) -> None:
+        if self.recorder is not None:
+            self.recorder.on_attitude(att)
+
+    def mavlink(self, data: bytes) -> None:
+        if self.recorder is not None:
+            self.recorder.on_mavlink(data)
+
+
+def load_gis_model(cfg: AppConfig, cache: GisCache, site_id: str | None = None) -> tuple[GisModel, str, Path]:
+    """The GIS model, mapped from the GIS cache (gis.cache: paged in only where it is cropped; a
+    model larger than the board's RAM works), its site id and the file a replay loads it from.
+    ``site_id`` (``gis.site``, or the one ``choose_site`` chose): that site as `gis import` / `gis
+    fetch` stored it (GisFormatError when it is not there or fails its hash). ``gis.model``: a file
+    already imported unchanged with the same settings is not parsed again (a LAZ or a tileset takes
+    minutes); else it is loaded, saved and mapped back, so the parsed copy is freed; a cached copy
+    that fails its hash check is imported again."""
     from gis.cache import CacheCorrupt
     from gis.loaders import load_model, source_key
     from gis.model import GisFormatError
 
-    if cfg.gis.site is not None:
+    site_id = site_id if site_id is not None else cfg.gis.site
+    if site_id is not None:
         try:
-            return cache.load_model(cfg.gis.site), cfg.gis.site, cache.model_file(cfg.gis.site)
+            return cache.load_model(site_id), site_id, cache.model_file(site_id)
         except KeyError:
-            raise GisFormatError(cache.root, f"no site {cfg.gis.site!r} in the GIS cache (`terraslam gis ls` lists them)") from None
+            raise GisFormatError(cache.root, f"no site {site_id!r} in the GIS cache (`terraslam gis ls` lists them)") from None
         except CacheCorrupt as e:
             raise GisFormatError(cache.root, str(e)) from None
     path, spacing, ground = cfg.gis.model.expanduser(), cfg.gis.sample_spacing_m, cfg.gis.footprint_ground
@@ -172,20 +264,31 @@ def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer, open_journal
     from gis.cache import GisCache
+    from gis.config import AUTO_SITE
     from gis.model import GisFormatError
+    from gis.providers import FetchError, NoSiteError
     from mavlink_bridge.bridge import Bridge
 
     setup_logging(cfg.logging)
     if cfg.gis.model is None and cfg.gis.site is None:
-        log.error("neither gis.model nor gis.site is set: the service needs a GIS model file (any supported format) "
-                  "or a site of the GIS cache")
+        log.error("neither gis.model nor gis.site is set: the service needs a GIS model file (any supported format), "
+                  "a site of the GIS cache or gis.site: auto")
         return 2
     cache = GisCache(cfg.gis.cache_dir.expanduser())
+    taps = _RecorderTaps() if cfg.recording.enabled else None
+    bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=taps and taps.gnss, on_attitude=taps and taps.attitude,
+                    on_mavlink=taps and taps.mavlink)  # started once the site is known, or by choose_site for its GNSS
     try:
-        model, site_id, model_file = load_gis_model(cfg, cache)
-    except (GisFormatError, OSError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
+        site = choose_site(cfg, cache, bridge) if cfg.gis.site == AUTO_SITE else None
+        model, site_id, model_file = load_gis_model(cfg, cache, site)
+    except (GisFormatError, OSError, NoSiteError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
         log.error("cannot load the GIS model (gis.%s): %s", "site" if cfg.gis.site else "model", e)
+        bridge.close()
         return 2
+    except (NoPositionError, FetchError) as e:  # GNSS or the network may be there after a restart
+        log.error("cannot choose the GIS site: %s", e)
+        bridge.close()
+        return 1
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
     if cfg.gis.use_survey_map and (restored is None or restored.alignment is None):
@@ -202,14 +305,14 @@ def run_service(cfg: AppConfig) -> int:
     saver = (MapSaver(localizer.slam, localizer, map_path(cfg), site_id, cfg.persistence.save_every_s).start()
              if cfg.persistence.enabled else None)
     recorder = _open_recorder(cfg, source.camera_model, T_body_cam, model, site_id, model_file)
+    if taps is not None:
+        taps.recorder = recorder
     if recorder is not None and localizer.worker is not None:  # the registrations too, for gis.align.replay
         try:
             localizer.worker.journal = open_journal(recorder.out / "registrations", model_file, cfg, model.origin)
         except OSError as e:
             log_event(log, "recording_unavailable", f"registration journal off for this run: {e}", level=logging.ERROR)
-    bridge = Bridge(cfg.mavlink, cfg.switching, on_gnss=recorder.on_gnss if recorder else None,
-                    on_attitude=recorder.on_attitude if recorder else None,
-                    on_mavlink=recorder.on_mavlink if recorder else None).start()
+    bridge.start()
     latency = LatencyTracker()
     saved = {"t": None, "alignment": _accepted(localizer.alignment)}
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gis.align.georef import GeorefEvidence
+from gis.config import AUTO_SITE
 from gis.geodesy import LocalFrame
 from gis.model import GisFormatError, GisModel, model_from_npz
 from gis.sim3 import Sim3
@@ -78,6 +79,8 @@ class GisCache:
         """Store a model (content-addressed .npz, uncompressed, its points stored cell by cell of
         the crop index so that ``load_model`` can map it instead of reading it) and index it;
         returns its site id."""
+        if site_id == AUTO_SITE:
+            raise ValueError(f"{AUTO_SITE!r} is not a site id: gis.site: {AUTO_SITE} means the site covering the position")
         model = model.sorted_by_cell
         tmp = self.root / "models" / f".tmp-{time.time_ns()}.npz"
         np.savez(

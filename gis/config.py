@@ -5,13 +5,18 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+AUTO_SITE = "auto"  # gis.site: the cached site covering the rough position (TerraSLAM §6 Pre-fetch, then Fetch)
+
 
 class GisConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     cache_dir: Path = Field(Path("~/.cache/terraslam/gis"), description="GIS cache (SQLite index + model files)")
     model: Path | None = Field(None, description="GIS model file to use directly (any supported format)")
-    site: str | None = Field(None, description="instead of model: a site of the GIS cache (what `terraslam gis import` or `gis fetch` stored; `gis ls` lists them)")
+    site: str | None = Field(None, description="instead of model: a site of the GIS cache (what `terraslam gis import` or `gis fetch` stored; `gis ls` lists them), or `auto`: the cached site covering the rough position (TerraSLAM §6 Pre-fetch), else one fetched from fetch_sources around it")
+    rough_position_deg: tuple[float, float] | None = Field(None, description="site auto: [lat, lon] WGS-84 degrees of the flight area, where the site is looked up; without it, the saved SLAM map's site (a restart in flight) or the autopilot's first trusted GNSS position")
+    position_wait_s: float = Field(300.0, gt=0, le=86_400, description="site auto without rough_position_deg or a fresh saved map: wait this long for a trusted GNSS position from the autopilot, then exit (1: systemd starts it again)")
+    fetch_sources: list[str] = Field(default_factory=list, description="site auto: model files, directories or http(s):// 3D Tiles tileset URLs to fetch from (within fetch_radius_m) when no cached site covers the position; the result is cached as a new site")
     use_survey_map: bool = Field(True, description="start in the site's survey SLAM map with its T_rough (`terraslam align-offline`) when no saved map with a usable alignment exists: fixes without GNSS from the first relocalised frame")
     survey_reloc_timeout_s: float = Field(900.0, gt=0, le=86_400, description="started in the survey map: relocalise in it within this long (frame time: on the ground before take-off too), else a fresh map (GNSS bootstrap as usual)")
     survey_reach_m: float = Field(300.0, gt=0, le=100_000, description="started in the survey map and not relocalised yet: trusted GNSS farther than this from every survey keyframe gives the survey map up at once (fresh map, GNSS bootstrap), instead of waiting survey_reloc_timeout_s without a map")
@@ -27,6 +32,15 @@ class GisConfig(BaseModel):
             raise ValueError("set footprint_ground_h_msl_m or footprint_ground_dem, not both")
         if self.model is not None and self.site is not None:
             raise ValueError("set gis.model or gis.site, not both")
+        if self.site != AUTO_SITE:
+            unused = [k for k in ("rough_position_deg", "fetch_sources") if getattr(self, k)]
+            if unused:
+                raise ValueError(f"gis.{unused[0]} is only used with gis.site: {AUTO_SITE}")
+        if self.rough_position_deg is not None:
+            lat, lon = self.rough_position_deg
+            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+                raise ValueError(f"gis.rough_position_deg {[lat, lon]} is not [lat, lon] in degrees "
+                                 "(latitude -90..90, longitude -180..180)")
         return self
 
     @property

@@ -23,7 +23,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 from urllib.parse import parse_qsl, unquote, urlencode, urljoin, urlsplit, urlunsplit
 
 import numpy as np
@@ -34,6 +34,10 @@ from urllib3.util.retry import Retry
 from gis.geodesy import LocalFrame, geodetic_to_ecef
 from gis.loaders import Ground, load_3dtiles, load_model, tileset_contents
 from gis.model import GisFormatError, GisModel, merge_models
+
+if TYPE_CHECKING:
+    from gis.cache import GisCache
+    from gis.config import GisConfig
 
 log = logging.getLogger(__name__)
 DOWNLOAD_THREADS = 8  # tile contents fetched at once (CesiumJS allows 18 requests per server)
@@ -207,3 +211,39 @@ def fetch_model(providers: list, lat_deg: float, lon_deg: float, radius_m: float
     if not models:
         raise FetchError(f"no GIS model within {radius_m:.0f} m of {lat_deg:.6f}, {lon_deg:.6f}")
     return models[0] if len(models) == 1 else merge_models(models, source)
+
+
+def providers_for(sources: Sequence[str], cfg: GisConfig, download_dir: Path,
+                  progress: Callable[[str], None] | None = None) -> list:
+    """A provider per source: an http(s):// URL is a 3D Tiles server (mirrored into download_dir),
+    anything else a model file or a directory of them; sampled as ``cfg`` says."""
+    return [HttpTilesProvider(s, download_dir, cfg.fetch_timeout_s, cfg.sample_spacing_m, progress=progress)
+            if s.startswith(("http://", "https://")) else LocalProvider((Path(s).expanduser(),), cfg.sample_spacing_m, cfg.footprint_ground)
+            for s in sources]
+
+
+class NoSiteError(LookupError):
+    """No cached site covers a position and nothing could be fetched for it."""
+
+
+def site_at(cache: GisCache, lat_deg: float, lon_deg: float, cfg: GisConfig,
+            progress: Callable[[str], None] | None = None) -> tuple[str, str]:
+    """The GIS site for a rough position (TerraSLAM §6): Pre-fetch (the nearest cached site whose
+    coverage contains it), else Fetch from ``cfg.fetch_sources`` within ``cfg.fetch_radius_m`` and
+    SaveCache as a new site. Returns (site id, how it was found). NoSiteError when no cached site
+    covers the position and there is nothing to fetch from; FetchError / GisFormatError when the
+    fetch fails."""
+    hit = cache.prefetch(lat_deg, lon_deg)
+    if hit is not None:
+        return hit.site_id, "cached"
+    where = f"{lat_deg:.6f}, {lon_deg:.6f}"
+    if not cfg.fetch_sources:
+        known = ", ".join(e.site_id for e in cache.entries()) or "none"
+        raise NoSiteError(f"no site of the GIS cache {cache.root} covers {where} (sites: {known}) and gis.fetch_sources "
+                          "is empty: `terraslam gis import` / `gis fetch` one, or set gis.fetch_sources")
+    model = fetch_model(providers_for(cfg.fetch_sources, cfg, cache.root / "downloads", progress),
+                        lat_deg, lon_deg, cfg.fetch_radius_m, ",".join(cfg.fetch_sources))
+    site_id = cache.save_model(model)
+    if cache.prefetch(lat_deg, lon_deg) is None:  # within the radius, yet not under the position
+        log.warning("site %s fetched for %s does not cover it: fixes only where it has structure", site_id, where)
+    return site_id, "fetched"

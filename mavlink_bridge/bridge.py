@@ -121,6 +121,9 @@ class Bridge:
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> "Bridge":
+        """Open the link and start the receive thread (once: a started bridge is returned as is)."""
+        if self._thread is not None:
+            return self
         c = self.cfg
         self._link = Link(c.connect, c.baud, c.source_system, c.source_component, self._key,
                           c.allow_unsigned, c.reconnect_max_s, tap=self._on_mavlink)

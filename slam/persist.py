@@ -273,6 +273,26 @@ def _check_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
         raise MapFileError(path, "non-finite poses or point positions")
 
 
+def read_map_header(path: Path | str) -> MapHeader:
+    """The verified header of a map file (format, version, content hash) without unpacking the map
+    or checking the camera: what a caller needs before it has a camera (e.g. the saved alignment's
+    GIS site). Raises MapFileError as ``load_map_file``."""
+    path = Path(path)
+    header, arrays = _read_npz(path)
+    if header.get("format") != FORMAT or header.get("version") != VERSION:
+        raise MapFileError(path, f"format {header.get('format')!r} version {header.get('version')!r}, "
+                                 f"this build reads {FORMAT!r} version {VERSION}")
+    sha = header.pop("content_sha256", None)
+    if sha != _content_hash(header, arrays):
+        raise MapFileError(path, "content does not match its SHA-256 (corrupted)")
+    try:
+        return MapHeader(int(header["map_id"]), int(header["reset_counter"]), float(header["created_wall_s"]),
+                         float(header["created_mono_s"]), int(header["n_keyframes"]), int(header["n_points"]),
+                         dict(header.get("attachments") or {}))
+    except (KeyError, TypeError, ValueError) as e:
+        raise MapFileError(path, f"inconsistent header ({type(e).__name__}: {e})") from None
+
+
 def load_map_file(path: Path | str, camera: CameraModel) -> LoadedMap:
     """Read and verify a map file written by ``save_map_file`` for ``camera``.
 
