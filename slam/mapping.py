@@ -593,8 +593,7 @@ class LocalMapper:
             if shared.get(cand.kf_id, 0) >= c.loop_min_inliers // 2:
                 continue  # already connected through common map points: nothing to close
             S = self._verify(kf, cand.kf_id)
-            if S is not None:
-                self._correct(kf, cand.kf_id, S)
+            if S is not None and self._correct(kf, cand.kf_id, S):
                 self._loop_cooldown_until = kf.kf_id + c.local_window
                 return
 
@@ -623,14 +622,24 @@ class LocalMapper:
         self._loop_pairs = [(pa[i], pb[i]) for i in np.flatnonzero(inl)]
         return S
 
-    def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> None:
+    def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> bool:
         """Move the current keyframe and its covisible recent keyframes by S (ORB-SLAM's loop
         correction neighbourhood), fuse the matched points, then BA: Algorithm 1 (recursive) or the
-        whole loop at once (full) — same starting state, so the two are comparable."""
-        self._finish_ba(wait=True)
+        whole loop at once (full) — same starting state, so the two are comparable. With a map
+        loaded from disk, its keyframes and points never move (its alignment registers them where
+        they are): they stay out of the moved window and survive every fusion, and a loop from a
+        keyframe that sees them to one of the flight's own is not closed (False): the current
+        keyframe is held by the loaded map already, and the correction would pull it towards the
+        flight's drifted part, off the map its alignment registers."""
         c = self.config
         w = c.local_window
         m = self.map
+        with m.lock:
+            sees_loaded = bool(np.any((kf.point_ids >= 0) & (kf.point_ids <= self._loaded_pt_upto)))
+            if 0 <= self._loaded_upto < old_id and sees_loaded:
+                log.info("loop %d -> %d not closed: keyframe %d is held by the loaded map's points", kf.kf_id, old_id, kf.kf_id)
+                return False
+        self._finish_ba(wait=True)
         t0 = time.perf_counter()
         with m.lock:
             ids = m.kf_ids()
@@ -650,7 +659,8 @@ class LocalMapper:
                         p = m.points[pid]
                         p.p_slam = S[:3, :3] @ p.p_slam + S[:3, 3]
             for new_pid, old_pid in self._loop_pairs:
-                m.replace_point(new_pid, old_pid)
+                if new_pid > self._loaded_pt_upto:  # (a loaded point is never the one fused away)
+                    m.replace_point(new_pid, old_pid)
         self._correction_gen += 1
         self.shared.correction = (self._correction_gen, S)
 
@@ -673,6 +683,7 @@ class LocalMapper:
         self.stats.loops.append((old_id, kf.kf_id))
         self.stats.n_loops += 1
         self._publish_full()
+        return True
 
     def _publish_full(self) -> None:
         with self.map.lock:

@@ -223,3 +223,58 @@ def test_a_survey_maps_keyframes_are_outside_the_memory_cap(keep_loaded):
     else:
         assert whole_loaded <= 10, whole_loaded  # all but the loop anchors forgotten
         assert mem.map.keyframes_with_features <= c.max_keyframes + c.max_loop_anchors
+
+
+def test_a_loop_correction_never_moves_a_loaded_map():
+    """A loaded map (restart or survey) is what its alignment registers: a loop correction moves
+    the flight's keyframes onto it, never its keyframes or points (none fused away either), and a
+    loop from a keyframe that sees its points to one of the flight's own is not closed."""
+    from slam.geometry import make_T
+
+    world, m = StripWorld(), SlamMap()
+    survey = LocalMapper(K, SlamConfig(**CAPS), Shared(active_map=m), m)
+    try:
+        with m.lock:
+            m.add_keyframe(world.keyframe(m, 0.0, 0.0))
+        for n in range(1, 15):
+            survey.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
+            assert survey.wait_idle(60)
+    finally:
+        survey.close()
+    with m.lock:
+        loaded_kf = {k: kf.T_cam_slam.copy() for k, kf in m.keyframes.items()}
+        loaded_pt = {p: mp.p_slam.copy() for p, mp in m.points.items()}
+    mapper = LocalMapper(K, SlamConfig(**CAPS), Shared(active_map=m), m, keep_loaded=True)
+    try:
+        for n in range(15, 23):  # on along the strip: the first of these see the survey's points
+            mapper.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
+            assert mapper.wait_idle(60)
+        with m.lock:
+            flight = sorted(k for k in m.keyframes if k not in loaded_kf)
+            sees = [k for k in flight if any(0 <= p <= max(loaded_pt) for p in m.keyframes[k].point_ids.tolist())]
+            before = {k: kf.T_cam_slam.copy() for k, kf in m.keyframes.items()}
+        assert sees and sees[0] == flight[0], (flight, sees)
+        S = make_T(np.eye(3), np.array([0.0, 2.0, 0.0]))  # a 2 m "loop correction"
+
+        # from a keyframe held by the survey's points to one of the flight's own: not closed, nothing moves
+        mapper._loop_pairs = []
+        assert not mapper._correct(m.keyframes[sees[-1]], flight[0] if sees[-1] != flight[0] else flight[1], S)
+        with m.lock:
+            assert all(np.array_equal(m.keyframes[k].T_cam_slam, T) for k, T in before.items())
+
+        # to a survey keyframe, from a flight keyframe whose correction window (the 6 keyframes before
+        # it that share its points) holds survey keyframes: only the flight's move, and BA brings
+        # them back onto the held survey
+        assert flight[2] in sees
+        a, b = sorted(loaded_pt)[:2]
+        mapper._loop_pairs = [(a, b)]  # a pair whose "new" point is the survey's: kept, not fused away
+        assert mapper._correct(m.keyframes[flight[2]], 5, S) and mapper.stats.n_loops == 1
+        with m.lock:
+            assert all(np.array_equal(m.keyframes[k].T_cam_slam, T) for k, T in loaded_kf.items())
+            assert all(p in m.points and np.array_equal(m.points[p].p_slam, P) for p, P in loaded_pt.items())
+            # (keyframe ids are the strip positions' indices: kf k was taken at x = k * STEP_M)
+            off_m = [np.linalg.norm(m.keyframes[k].center - [k * STEP_M, 0.0, HEIGHT_M]) for k in flight]
+    finally:
+        mapper.close()
+    print(f"flight keyframes after the 2 m correction and loop BA: {np.round(off_m, 3).tolist()} m off")
+    assert max(off_m) < 1.0, off_m
