@@ -31,7 +31,7 @@ from companion.persistence import MapSaver, load_saved, load_survey, map_path, s
 from companion.pipeline import PipelineInput, SurveyArea, attitude_prior
 from companion.supervisor import LatencyTracker, Stage, StageContext, Supervisor
 from gis.types import AlignmentSource
-from mavlink_bridge.types import GnssQuality, GnssSample
+from mavlink_bridge.types import GnssQuality, GnssStatus
 
 if TYPE_CHECKING:
     from gis.cache import GisCache
@@ -139,26 +139,28 @@ class NoPositionError(RuntimeError):
     """gis.site: auto found no rough position to look the site up at."""
 
 
-def wait_for_trusted_gnss(bridge, timeout_s: float, poll_s: float = 0.2) -> GnssSample | None:
-    """The autopilot's first GNSS position our monitor trusts, waiting up to ``timeout_s`` (systemd
-    is told each 10 s that startup goes on, and why); None when none came."""
+def wait_for_trusted_gnss(bridge, timeout_s: float, poll_s: float = 0.2) -> GnssStatus:
+    """The GNSS monitor's verdict once it trusts the autopilot's position (``.trusted``, with the
+    sample), or its last verdict when ``timeout_s`` passed without (systemd is told each 10 s that
+    startup goes on, and why)."""
     from companion import notify
 
     deadline = time.monotonic() + timeout_s
     next_note = 0.0
     while True:
         st = bridge.gnss_status()
-        if st.trusted and st.sample is not None:
-            return st.sample
         now = time.monotonic()
-        if now >= deadline:
-            return None
+        if (st.trusted and st.sample is not None) or now >= deadline:
+            return st
         if now >= next_note:
-            why = "; ".join(st.reasons) or st.quality.value
-            notify.status(f"gis.site auto: waiting for a trusted GNSS position ({why}); {deadline - now:.0f} s left")
+            notify.status(f"gis.site auto: waiting for a trusted GNSS position ({_why(st)}); {deadline - now:.0f} s left")
             notify.extend_timeout(30.0)
             next_note = now + 10.0
         time.sleep(poll_s)
+
+
+def _why(st: GnssStatus) -> str:
+    return "; ".join(st.reasons) or st.quality.value
 
 
 def choose_site(cfg: AppConfig, cache: GisCache, bridge) -> str:
@@ -181,11 +183,12 @@ def choose_site(cfg: AppConfig, cache: GisCache, bridge) -> str:
                   site=saved[0])
         return saved[0]
     else:
-        sample = wait_for_trusted_gnss(bridge.start(), g.position_wait_s)
-        if sample is None:
+        st = wait_for_trusted_gnss(bridge.start(), g.position_wait_s)
+        if not (st.trusted and st.sample is not None):
             raise NoPositionError(f"gis.site auto: no trusted GNSS position from the autopilot within gis.position_wait_s "
-                                  f"({g.position_wait_s:g} s) and no gis.rough_position_deg: cannot choose the GIS site")
-        (lat, lon), where = (sample.lat_deg, sample.lon_deg), "trusted GNSS"
+                                  f"({g.position_wait_s:g} s; GNSS {_why(st)}) and no gis.rough_position_deg: "
+                                  "cannot choose the GIS site")
+        (lat, lon), where = (st.sample.lat_deg, st.sample.lon_deg), "trusted GNSS"
 
     def progress(line: str) -> None:
         log.info("fetching the GIS site: %s", line)

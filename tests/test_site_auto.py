@@ -194,7 +194,7 @@ def test_choose_site_by_configured_position_saved_map_or_trusted_gnss(tmp_path: 
         map_path(cfg()).unlink()
         # 3. no position known: the autopilot's GNSS, once trusted (none yet → the wait ends in an error)
         b = ap.bridge()
-        with pytest.raises(NoPositionError, match="no trusted GNSS position .* within gis.position_wait_s"):
+        with pytest.raises(NoPositionError, match=r"no trusted GNSS position .* within gis.position_wait_s \(1.5 s; GNSS .*no GNSS data"):
             choose_site(cfg(position_wait_s=1.5), cache, b)
         ap.gnss = True
         t0 = time.monotonic()
