@@ -59,6 +59,7 @@ from pyproj.exceptions import CRSError, ProjError
 from pyproj.transformer import TransformerGroup
 
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, msl_to_ellipsoid
+from gis.implicit_tiles import IMPLICIT, ImplicitTilingError, implicit_children, implicit_root
 from gis.model import (
     BUILDING, GROUND, HIGH_VEGETATION, ROAD, UNCLASSIFIED,
     GisFormatError, GisModel, frame_at_centroid, merge_models, model_from_ecef, model_from_npz,
@@ -864,28 +865,37 @@ class TileContent:
 
 
 def tileset_contents(tile: dict, T_parent: np.ndarray, refine: str, max_geometric_error_m: float,
-                     keep: Callable[[dict, np.ndarray], bool] = lambda tile, T: True) -> Iterator[TileContent]:
+                     keep: Callable[[dict, np.ndarray], bool] = lambda tile, T: True,
+                     read_subtree: Callable[[str], bytes] | None = None) -> Iterator[TileContent]:
     """The contents a viewer needs to show the tileset with at most max_geometric_error_m of error
     (3D Tiles 1.1 §"Geometric error", §"Refinement"): descend while a tile's ``geometricError`` is
     above the target and it has children; a REPLACE tile's content is kept only where the descent
     stops there, an ADD tile's on the way down too (its children add to it). External tilesets
     (.json content) are yielded for the caller to open and continue with the same rules; their
-    root inherits T and refine. ``keep(tile, T)`` prunes whole subtrees (e.g. a fetch radius)."""
-    if "implicitTiling" in tile:
-        raise NotImplementedError("3D Tiles 1.1 implicit tiling (implicitTiling, subtree files) is not read")
+    root inherits T and refine. ``keep(tile, T)`` prunes whole subtrees (e.g. a fetch radius).
+    Implicit tiling (gis.implicit_tiles) is expanded as the descent reaches it, reading subtree
+    files by their tileset-relative URI with ``read_subtree``."""
     T = T_parent @ (np.asarray(tile["transform"], float).reshape(4, 4).T if "transform" in tile else np.eye(4))
     if not keep(tile, T):
         return
+    if "implicitTiling" in tile:  # (after keep: a pruned tree's subtrees are not read)
+        tile = implicit_root(tile, read_subtree)
     refine = str(tile.get("refine", refine)).upper()
-    children = tile.get("children") or []
-    stop = not children or float(tile.get("geometricError", 0.0)) <= max_geometric_error_m
+    fine_enough = float(tile.get("geometricError", 0.0)) <= max_geometric_error_m
+    if fine_enough:
+        children = []
+    elif IMPLICIT in tile:  # (children outside keep are left out before their availability is read)
+        children = implicit_children(tile, lambda ch: keep(ch, T))
+    else:
+        children = tile.get("children") or []
+    stop = fine_enough or not children
     for c in ([tile["content"]] if "content" in tile else []) + list(tile.get("contents") or []):
         content = TileContent(c.get("uri") or c.get("url") or "", T, refine)
         if content.uri and (stop or refine == "ADD" or content.is_tileset):
             yield content
     if not stop:
         for ch in children:
-            yield from tileset_contents(ch, T, refine, max_geometric_error_m, keep)
+            yield from tileset_contents(ch, T, refine, max_geometric_error_m, keep, read_subtree)
 
 
 def _relative_uri(ts_path: Path, uri: str) -> Path:
@@ -903,9 +913,19 @@ def _walk_tileset(path: Path, T_parent: np.ndarray, refine: str, spacing: float,
     doc = _read_json(path)
     if not isinstance(doc, dict) or "root" not in doc:
         raise GisFormatError(path, "tileset.json without 'root'")
+    def read_subtree(uri: str) -> bytes | None:
+        sub = resolve(path, uri)
+        if sub is None:  # (a download mirror: outside what this fetch needed, left out like a tile)
+            return None
+        if not sub.is_file():
+            raise GisFormatError(path, f"subtree {uri} of its implicit tiling is missing")
+        return sub.read_bytes()
+
     try:
-        contents = list(tileset_contents(doc["root"], T_parent, refine, spacing))
-    except NotImplementedError as e:
+        contents = list(tileset_contents(doc["root"], T_parent, refine, spacing, read_subtree=read_subtree))
+    except GisFormatError:
+        raise
+    except ImplicitTilingError as e:
         raise GisFormatError(path, str(e)) from None
     except (AttributeError, KeyError, TypeError, ValueError) as e:  # a tile that is not a tile
         raise GisFormatError(path, f"malformed tile: {type(e).__name__}: {e}") from None

@@ -32,6 +32,7 @@ from requests.adapters import HTTPAdapter
 from urllib3.util.retry import Retry
 
 from gis.geodesy import LocalFrame, geodetic_to_ecef
+from gis.implicit_tiles import ImplicitTilingError
 from gis.loaders import Ground, load_3dtiles, load_model, tileset_contents
 from gis.model import GisFormatError, GisModel, merge_models
 
@@ -153,9 +154,11 @@ class HttpTilesProvider:
         path, _ = self._get(http, url, urls, refresh=depth == 0)
         try:
             doc = json.loads(path.read_text())
-            contents = list(tileset_contents(doc["root"], T_parent, refine, self.sample_spacing_m,
-                                             keep=lambda tile, T: _near(tile.get("boundingVolume", {}), T, centre, radius_m)))
-        except NotImplementedError as e:
+            contents = list(tileset_contents(  # (implicit tiling: its subtrees are mirrored as the walk reaches them)
+                doc["root"], T_parent, refine, self.sample_spacing_m,
+                keep=lambda tile, T: _near(tile.get("boundingVolume", {}), T, centre, radius_m),
+                read_subtree=lambda uri: self._get(http, _child_url(url, uri), urls)[0].read_bytes()))
+        except ImplicitTilingError as e:
             raise FetchError(_redacted(f"{url}: {e}")) from None
         except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
             path.unlink(missing_ok=True)
