@@ -139,19 +139,32 @@ class NoPositionError(RuntimeError):
     """gis.site: auto found no rough position to look the site up at."""
 
 
-def wait_for_trusted_gnss(bridge, timeout_s: float, poll_s: float = 0.2) -> GnssStatus:
-    """The GNSS monitor's verdict once it trusts the autopilot's position (``.trusted``, with the
-    sample), or its last verdict when ``timeout_s`` passed without (systemd is told each 10 s that
-    startup goes on, and why)."""
+ORIGIN_GRACE_S = 5.0  # the EKF origin stands in for a position once known this long without trusted GNSS
+
+
+def wait_for_position(bridge, timeout_s: float, poll_s: float = 0.2,
+                      origin_grace_s: float = ORIGIN_GRACE_S) -> tuple[tuple[float, float, str] | None, GnssStatus]:
+    """Where the autopilot is, roughly enough to choose a GIS site: (lat, lon, what it is) and the
+    GNSS monitor's last verdict. Its first GNSS position the monitor trusts; else, once its EKF
+    origin (GPS_GLOBAL_ORIGIN) has been known for ``origin_grace_s`` with GNSS still not trusted
+    (jammed at a restart in flight: the autopilot keeps the origin it started with), that origin;
+    None when neither came within ``timeout_s`` (systemd is told each 10 s that startup goes on,
+    and why)."""
     from companion import notify
 
     deadline = time.monotonic() + timeout_s
-    next_note = 0.0
+    next_note, origin_since = 0.0, None
     while True:
         st = bridge.gnss_status()
         now = time.monotonic()
-        if (st.trusted and st.sample is not None) or now >= deadline:
-            return st
+        if st.trusted and st.sample is not None:
+            return (st.sample.lat_deg, st.sample.lon_deg, "trusted GNSS"), st
+        origin = bridge.ekf_origin()
+        origin_since = None if origin is None else (origin_since or now)
+        if origin is not None and now - origin_since >= origin_grace_s:
+            return (origin.lat0_deg, origin.lon0_deg, f"the autopilot's EKF origin, GNSS {_why(st)}"), st
+        if now >= deadline:
+            return None, st
         if now >= next_note:
             notify.status(f"gis.site auto: waiting for a trusted GNSS position ({_why(st)}); {deadline - now:.0f} s left")
             notify.extend_timeout(30.0)
@@ -168,8 +181,9 @@ def choose_site(cfg: AppConfig, cache: GisCache, bridge) -> str:
     covering the rough position, else Fetch it from ``gis.fetch_sources`` and SaveCache). The rough
     position is, in this order: ``gis.rough_position_deg``; else, with no position needed, the
     site of the saved SLAM map when its alignment is fresh enough to restore (a restart in flight,
-    GNSS perhaps jammed); else the autopilot's first trusted GNSS position (the bridge starts here
-    for it), within ``gis.position_wait_s``. Raises NoPositionError, gis.providers.NoSiteError,
+    GNSS perhaps jammed); else the autopilot's first trusted GNSS position, or its EKF origin when
+    GNSS stays untrusted (wait_for_position; the bridge starts here for it), within
+    ``gis.position_wait_s``. Raises NoPositionError, gis.providers.NoSiteError,
     FetchError or GisFormatError."""
     from companion import notify
     from gis.providers import site_at
@@ -183,12 +197,12 @@ def choose_site(cfg: AppConfig, cache: GisCache, bridge) -> str:
                   site=saved[0])
         return saved[0]
     else:
-        st = wait_for_trusted_gnss(bridge.start(), g.position_wait_s)
-        if not (st.trusted and st.sample is not None):
-            raise NoPositionError(f"gis.site auto: no trusted GNSS position from the autopilot within gis.position_wait_s "
-                                  f"({g.position_wait_s:g} s; GNSS {_why(st)}) and no gis.rough_position_deg: "
-                                  "cannot choose the GIS site")
-        (lat, lon), where = (st.sample.lat_deg, st.sample.lon_deg), "trusted GNSS"
+        found, st = wait_for_position(bridge.start(), g.position_wait_s)
+        if found is None:
+            raise NoPositionError(f"gis.site auto: no trusted GNSS position or EKF origin from the autopilot within "
+                                  f"gis.position_wait_s ({g.position_wait_s:g} s; GNSS {_why(st)}) and no "
+                                  "gis.rough_position_deg: cannot choose the GIS site")
+        lat, lon, where = found
 
     def progress(line: str) -> None:
         log.info("fetching the GIS site: %s", line)

@@ -143,6 +143,11 @@ class Bridge:
     def state(self) -> BridgeState:
         return self.policy.state
 
+    def ekf_origin(self) -> LocalFrame | None:
+        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) once it has told us, else None."""
+        with self._lock:
+            return self._origin
+
     def gnss_status(self) -> GnssStatus:
         with self._lock:
             return self.monitor.status(self.clock())

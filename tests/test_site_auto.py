@@ -146,16 +146,18 @@ class _Autopilot:
     """The simulated autopilot, its receiver on the ground at FLIGHT's start when ``gnss``."""
 
     def __init__(self) -> None:
-        self.sim = SimAutopilot("ardupilot", params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}).start()
+        self.sim = SimAutopilot("ardupilot", ekf_start_s=0.0, params={"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0}).start()
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._feed, daemon=True)
-        self.gnss = False
+        self.gnss: str | None = None  # "good", "jammed" (no fix) or nothing received
 
     def _feed(self) -> None:
         while not self.stop.wait(0.2):
-            if self.gnss:
-                now = time.monotonic()
+            now = time.monotonic()
+            if self.gnss == "good":
                 self.sim.feed_gnss(FLIGHT.gnss(now, 0.0))
+            elif self.gnss == "jammed":
+                self.sim.feed_gnss(FLIGHT.gnss_lost(now))
 
     def bridge(self) -> Bridge:
         return Bridge(MavlinkConfig(connect=f"udpout:127.0.0.1:{self.sim.port}", autopilot="ardupilot", output="gps_input"),
@@ -171,7 +173,7 @@ class _Autopilot:
         self.sim.close()
 
 
-def test_choose_site_by_configured_position_saved_map_or_trusted_gnss(tmp_path: Path) -> None:
+def test_choose_site_by_configured_position_saved_map_trusted_gnss_or_ekf_origin(tmp_path: Path, caplog) -> None:
     cache = _cache(tmp_path / "cache")
     state = SupervisorConfig(state_dir=tmp_path / "state")
 
@@ -194,14 +196,29 @@ def test_choose_site_by_configured_position_saved_map_or_trusted_gnss(tmp_path: 
         map_path(cfg()).unlink()
         # 3. no position known: the autopilot's GNSS, once trusted (none yet → the wait ends in an error)
         b = ap.bridge()
-        with pytest.raises(NoPositionError, match=r"no trusted GNSS position .* within gis.position_wait_s \(1.5 s; GNSS .*no GNSS data"):
+        with pytest.raises(NoPositionError, match=r"no trusted GNSS position or EKF origin .* within gis.position_wait_s \(1.5 s; GNSS .*no GNSS data"):
             choose_site(cfg(position_wait_s=1.5), cache, b)
-        ap.gnss = True
+        ap.gnss = "good"
         t0 = time.monotonic()
         assert choose_site(cfg(position_wait_s=30.0), cache, b) == "here"
         print(f"site chosen {time.monotonic() - t0:.1f} s after the receiver came up")
         assert ap.sim.received().counts["HEARTBEAT"] >= 1  # the bridge ran for it
         b.close()
+
+    # 4. the companion restarts in flight, GNSS jammed, no saved map: the autopilot's EKF origin
+    #    (set from its GNSS before the jamming) stands in once GNSS has stayed untrusted 5 s
+    with _Autopilot() as ap:
+        ap.sim.feed_gnss(FLIGHT.gnss(time.monotonic(), 0.0))  # the autopilot's EKF takes its origin here
+        assert ap.sim.origin is not None
+        ap.gnss = "jammed"
+        b = ap.bridge()
+        t0 = time.monotonic()
+        with caplog.at_level("INFO", logger="terraslam.service"):
+            assert choose_site(cfg(position_wait_s=30.0), cache, b) == "here"
+        took = time.monotonic() - t0
+        b.close()
+    assert 5.0 <= took < 15.0, took
+    assert "covers 47.397700, 8.545600 (the autopilot's EKF origin, GNSS no 3D fix" in caplog.text, caplog.text
 
 
 @pytest.mark.timeout(150)
@@ -271,7 +288,7 @@ def test_service_with_site_auto_waits_for_trusted_gnss_then_runs_in_the_covering
     text2 = log2.read_text()
     assert rc1 == 1, text1[-3000:]
     errors = [line for line in text1.splitlines() if "ERROR" in line]
-    assert len(errors) == 1 and "no trusted GNSS position" in errors[0] and "Traceback" not in text1, text1[-3000:]
+    assert len(errors) == 1 and "no trusted GNSS position or EKF origin" in errors[0] and "Traceback" not in text1, text1[-3000:]
     assert ready and rc2 == 0 and "Traceback" not in text2, text2[-3000:]
     m = re.search(rf"GIS site {site} \(cached\) covers ([0-9.]+), ([0-9.]+) \(trusted GNSS\)", text2)
     assert m and np.allclose([float(m[1]), float(m[2])], [g0.lat_deg, g0.lon_deg], atol=2e-6), text2[-3000:]  # MAVLink's 1e-7°
