@@ -1,7 +1,7 @@
 """3D Tiles 1.1 implicit tiling, expanded into explicit tiles one level at a time.
 
-A tile with ``implicitTiling`` (a quadtree or octree, e.g. Cesium World Terrain and other ion
-tilesets in 3D Tiles 1.1) lists no children: they follow from its bounding volume, halved per level,
+A tile with ``implicitTiling`` (a quadtree or octree, as 3D Tiles 1.1 tilers may write for large
+terrain or point-cloud tilesets) lists no children: they follow from its bounding volume, halved per level,
 its geometric error, halved per level, and availability bitstreams in subtree files (3D Tiles 1.1
 §"Implicit Tiling", §"Subtrees"). ``implicit_root`` turns such a tile into a plain tile dict
 whose children ``implicit_children`` makes on demand, so ``gis.loaders.tileset_contents`` walks it
