@@ -187,21 +187,28 @@ def test_place_index_drops_removed_entries():
     assert idx.query(descs[8])[0].kf_id == 8
 
 
+def _surveyed_strip(n_keyframes: int, config: SlamConfig) -> tuple[StripWorld, SlamMap]:
+    """A map of the strip's first n keyframes (STEP_M apart, keyframe k at x = k * STEP_M) made
+    by a LocalMapper that is closed again: what a later flight loads from disk."""
+    world, m = StripWorld(), SlamMap()
+    survey = LocalMapper(K, config, Shared(active_map=m), m)
+    try:
+        with m.lock:
+            m.add_keyframe(world.keyframe(m, 0.0, 0.0))
+        for n in range(1, n_keyframes):
+            survey.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
+            assert survey.wait_idle(60)
+    finally:
+        survey.close()
+    return world, m
+
+
 @pytest.mark.parametrize("keep_loaded", [True, False])
 def test_a_survey_maps_keyframes_are_outside_the_memory_cap(keep_loaded):
     """A loaded map kept whole (a site's survey map, SlamSystem keep_loaded) keeps every keyframe
     while the flight's own keyframes go through the cap; a map saved by the service itself
     (keep_loaded off) is capped as a whole, or it would grow with every restart."""
-    world, m = StripWorld(), SlamMap()
-    survey = LocalMapper(K, SlamConfig(**{**CAPS, "max_keyframes": 40}), Shared(active_map=m), m)
-    try:
-        with m.lock:
-            m.add_keyframe(world.keyframe(m, 0.0, 0.0))
-        for n in range(1, 30):
-            survey.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
-            assert survey.wait_idle(60)
-    finally:
-        survey.close()
+    world, m = _surveyed_strip(30, SlamConfig(**{**CAPS, "max_keyframes": 40}))
     with m.lock:
         loaded = m.kf_ids()
         assert len(loaded) == 30 and all(m.keyframes[k].has_features for k in loaded)
@@ -231,16 +238,7 @@ def test_a_loop_correction_never_moves_a_loaded_map():
     loop from a keyframe that sees its points to one of the flight's own is not closed."""
     from slam.geometry import make_T
 
-    world, m = StripWorld(), SlamMap()
-    survey = LocalMapper(K, SlamConfig(**CAPS), Shared(active_map=m), m)
-    try:
-        with m.lock:
-            m.add_keyframe(world.keyframe(m, 0.0, 0.0))
-        for n in range(1, 15):
-            survey.insert_keyframe(world.keyframe(m, n * STEP_M, n * 0.5))
-            assert survey.wait_idle(60)
-    finally:
-        survey.close()
+    world, m = _surveyed_strip(15, SlamConfig(**CAPS))
     with m.lock:
         loaded_kf = {k: kf.T_cam_slam.copy() for k, kf in m.keyframes.items()}
         loaded_pt = {p: mp.p_slam.copy() for p, mp in m.points.items()}
