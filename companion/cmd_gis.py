@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import typer
 
@@ -87,7 +87,12 @@ def _georef_verdict(evidence, model_sigma_m: float) -> str:
 
 
 @gis_app.command("ls")
-def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE) -> None:
+def gis_ls(
+    config: Optional[Path] = _CONFIG,
+    cache_dir: Optional[Path] = _CACHE,
+    at: Optional[Tuple[float, float]] = typer.Option(None, "--at", metavar="LAT LON",
+                                                     help="only the site covering this position (WGS-84 degrees): the one gis.site: auto would fly; exit 1 if none"),
+) -> None:
     """List cached GIS models and their transforms."""
     from rich.console import Console
     from rich.table import Table
@@ -95,7 +100,17 @@ def gis_ls(config: Optional[Path] = _CONFIG, cache_dir: Optional[Path] = _CACHE)
     from gis.cache import CacheCorrupt
 
     try:
-        entries = _cache(config, cache_dir).entries()
+        cache = _cache(config, cache_dir)
+        if at is None:
+            entries = cache.entries()
+        else:
+            if not (-90.0 <= at[0] <= 90.0 and -180.0 <= at[1] <= 180.0):
+                fail(f"--at {at[0]} {at[1]} is not LAT LON in degrees (latitude -90..90, longitude -180..180)")
+            hit = cache.prefetch(*at)
+            if hit is None:
+                fail(f"no cached site covers {at[0]:.6f}, {at[1]:.6f}: `terraslam gis fetch --lat {at[0]} --lon {at[1]} "
+                     "--source ...` or gis.fetch_sources would get one", code=1)
+            entries = [hit]
     except CacheCorrupt as e:
         fail(str(e))
     t = Table("site", "origin lat, lon", "radius m", "points", "CRS", "T_rough", "T_fine", "georeference vs GNSS", "sha256")

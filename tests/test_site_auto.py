@@ -99,6 +99,22 @@ def test_site_at_prefetches_the_covering_site_else_fetches_and_caches_one(tmp_pa
     assert len(cache.entries()) == 3
 
 
+def test_gis_ls_at_a_position_shows_the_site_auto_would_fly(tmp_path: Path) -> None:
+    from companion.cli import _register_subcommands, app
+
+    cache = _cache(tmp_path / "cache")
+    _register_subcommands()
+    run = CliRunner().invoke
+    res = run(app, ["gis", "ls", "--cache-dir", str(cache.root), "--at", str(FLIGHT.lat0_deg), str(FLIGHT.lon0_deg)])
+    assert res.exit_code == 0 and "here" in res.output and "there" not in res.output, res.output
+    res = run(app, ["gis", "ls", "--cache-dir", str(cache.root), "--at", *map(str, _latlon(FAR_E, FAR_N))])
+    assert res.exit_code == 1 and "no cached site covers" in res.output, res.output
+    res = run(app, ["gis", "ls", "--cache-dir", str(cache.root), "--at", "8.54", "247.37"])
+    assert res.exit_code == 2 and "is not LAT LON" in res.output, res.output
+    res = run(app, ["gis", "ls", "--cache-dir", str(cache.root)])
+    assert res.exit_code == 0 and "here" in res.output and "there" in res.output, res.output
+
+
 def test_site_auto_settings_are_checked() -> None:
     from companion.cli import _register_subcommands, app
 
