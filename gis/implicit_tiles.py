@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 IMPLICIT = "_implicit"  # key of the expansion state in a tile dict made here (not a 3D Tiles property)
+MAX_TILES = 200_000  # tiles one expansion may make: a few bytes of constant availability can describe 4^20
 SUBTREE_MAGIC = b"subt"
 
 
@@ -50,6 +51,7 @@ class _Tiling:
     subtree_uri: str
     read: Callable[[str], bytes | None]  # subtree URI (relative to the tileset) → its bytes; None: left out
     subtrees: dict[tuple[int, int, int, int], Subtree] = field(default_factory=dict)
+    n_tiles: int = 0  # tiles made so far (MAX_TILES)
 
     def subtree(self, level: int, x: int, y: int, z: int) -> Subtree:
         key = (level, x, y, z)
@@ -144,6 +146,10 @@ def _available(tiling: _Tiling, level: int, x: int, y: int, z: int) -> bool:
 
 def _tile_at(tiling: _Tiling, level: int, x: int, y: int, z: int) -> dict:
     """The explicit tile (level, x, y, z): its volume and geometric error, its content if available."""
+    tiling.n_tiles += 1
+    if tiling.n_tiles > MAX_TILES:
+        raise ImplicitTilingError(f"the selection needs more than {MAX_TILES} tiles of its implicit tiling (level {level}): "
+                                  "a sampling spacing far finer than the tileset's use, or a broken tileset")
     root = tiling.root
     t = {"boundingVolume": _sub_volume(root["boundingVolume"], level, x, y, z, tiling.octree),
          "geometricError": float(root["geometricError"]) / 2 ** level, IMPLICIT: (tiling, level, x, y, z)}

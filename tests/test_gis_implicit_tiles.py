@@ -130,6 +130,15 @@ def test_broken_subtrees_are_refused_by_name(tmp_path: Path) -> None:
         load_model(ts, sample_spacing_m=1.0)
     assert _drawn(load_model(ts, sample_spacing_m=30.0))  # above level 2: that subtree is never read
     doc = json.loads(ts.read_text())
+    # constant availability to level 20 under a huge geometric error: 4^20 tiles from 100 bytes; refused, not walked
+    (tmp_path / "subtrees" / "0.0.0.subtree").write_text(json.dumps({
+        "tileAvailability": {"constant": 1}, "contentAvailability": [{"constant": 0}], "childSubtreeAvailability": {"constant": 1}}))
+    deep = json.loads(json.dumps(doc))
+    deep["root"]["geometricError"] = 1e9
+    deep["root"]["implicitTiling"].update(availableLevels=21, subtreeLevels=21)
+    ts.write_text(json.dumps(deep))
+    with pytest.raises(GisFormatError, match="more than 200000 tiles of its implicit tiling"):
+        load_model(ts)
     doc["root"]["implicitTiling"]["subdivisionScheme"] = "S2"
     ts.write_text(json.dumps(doc))
     with pytest.raises(GisFormatError, match="neither QUADTREE nor OCTREE"):
