@@ -134,6 +134,12 @@ class LocalFrame:
     lon0_deg: float
     h0_ellipsoid_m: float = 0.0
 
+    def __post_init__(self) -> None:
+        # plain floats whatever they came as (numpy scalars or 0-d arrays from a transform): the GIS
+        # cache stores them in SQLite, which would keep an array's bytes as a blob
+        for name in ("lat0_deg", "lon0_deg", "h0_ellipsoid_m"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
     @functools.cached_property
     def origin_ecef_m(self) -> np.ndarray:
         return geodetic_to_ecef(self.lat0_deg, self.lon0_deg, self.h0_ellipsoid_m)

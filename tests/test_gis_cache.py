@@ -368,3 +368,17 @@ def test_local_provider_finds_every_supported_format_in_a_folder(tmp_path):
     assert sorted(m.source_path.name for m in models) == ["city.city.jsonl", "dsm.tif"]
     merged = fetch_model([LocalProvider((tmp_path,))], lat, lon, 500.0)
     assert len(merged) == sum(len(m) for m in models)
+
+
+def test_a_site_whose_origin_came_from_a_transform_is_stored_as_numbers(tmp_path):
+    """A LocalFrame made from what a geodetic transform returns (0-d arrays) is plain floats, so the
+    cache's SQLite index holds numbers, and Pre-fetch works over it and every other site (a blob
+    there made every lookup fail)."""
+    cache = GisCache(tmp_path / "cache")
+    lat, lon, h = ORIGIN.enu_to_geodetic(np.array([3000.0, 0.0, 0.0]))
+    there = LocalFrame(lat, lon, h)
+    assert all(type(v) is float for v in (there.lat0_deg, there.lon0_deg, there.h0_ellipsoid_m))
+    cache.save_model(box_city_model(100.0, there, seed=1, spacing_m=4.0), "there")
+    cache.save_model(box_city_model(100.0, ORIGIN, seed=2, spacing_m=4.0), "here")
+    assert cache.prefetch(ORIGIN.lat0_deg, ORIGIN.lon0_deg).site_id == "here"
+    assert cache.prefetch(float(lat), float(lon)).site_id == "there"
