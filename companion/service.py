@@ -280,7 +280,7 @@ def load_gis_model(cfg: AppConfig, cache: GisCache, site_id: str | None = None) 
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer, open_journal
-    from gis.cache import GisCache
+    from gis.cache import CacheCorrupt, GisCache
     from gis.config import AUTO_SITE
     from gis.model import GisFormatError
     from gis.providers import FetchError, NoSiteError
@@ -298,7 +298,7 @@ def run_service(cfg: AppConfig) -> int:
     try:
         site = choose_site(cfg, cache, bridge) if cfg.gis.site == AUTO_SITE else None
         model, site_id, model_file = load_gis_model(cfg, cache, site)
-    except (GisFormatError, OSError, NoSiteError) as e:  # missing, unreadable or corrupt: a config problem, not a crash
+    except (GisFormatError, OSError, NoSiteError, CacheCorrupt) as e:  # missing, unreadable or corrupt: a config problem, not a crash
         log.error("cannot load the GIS model (gis.%s): %s", "site" if cfg.gis.site else "model", e)
         bridge.close()
         return 2

@@ -269,8 +269,12 @@ class GisCache:
         rough = self.load_transform(r["site_id"], "rough")
         fine = self.load_transform(r["site_id"], "fine")
         meta = {k: t[1] for k, t in (("rough", rough), ("fine", fine)) if t}
+        try:
+            origin, radius_m = LocalFrame(r["lat0_deg"], r["lon0_deg"], r["h0_ellipsoid_m"]), float(r["radius_m"])
+        except (TypeError, ValueError) as e:
+            raise CacheCorrupt(f"site {r['site_id']!r}: its index row does not hold an origin and radius ({e})") from None
         return CacheEntry(
-            r["site_id"], LocalFrame(r["lat0_deg"], r["lon0_deg"], r["h0_ellipsoid_m"]), r["radius_m"],
+            r["site_id"], origin, radius_m,
             self._file(r), r["sha256"], r["source_crs"], r["source_path"], r["n_points"],
             rough[0] if rough else None, fine[0] if fine else None, meta, self.load_georef(r["site_id"]),
         )

@@ -382,3 +382,8 @@ def test_a_site_whose_origin_came_from_a_transform_is_stored_as_numbers(tmp_path
     cache.save_model(box_city_model(100.0, ORIGIN, seed=2, spacing_m=4.0), "here")
     assert cache.prefetch(ORIGIN.lat0_deg, ORIGIN.lon0_deg).site_id == "here"
     assert cache.prefetch(float(lat), float(lon)).site_id == "there"
+    import sqlite3
+    with sqlite3.connect(cache.db_path) as db:  # an index row that is not numbers: refused by name, not a crash
+        db.execute("UPDATE models SET h0_ellipsoid_m=? WHERE site_id='there'", (np.zeros(1).tobytes(),))
+    with pytest.raises(CacheCorrupt, match="site 'there': its index row"):
+        cache.prefetch(ORIGIN.lat0_deg, ORIGIN.lon0_deg)
