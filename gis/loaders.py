@@ -942,7 +942,38 @@ def _walk_tileset(path: Path, T_parent: np.ndarray, refine: str, spacing: float,
 def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
     if not path.is_file():
         raise GisFormatError(path, "tile content referenced by the tileset is missing")
-    data = path.read_bytes()
+    return _tile_model(path, path.read_bytes(), T_ecef_tile, spacing)
+
+
+def _cmpt_tiles(path: Path, data: bytes, depth: int = 0) -> list[bytes]:
+    """The inner tiles of a composite tile (3D Tiles 1.0 cmpt: magic, version, byteLength,
+    tilesLength, then the tiles back to back, each with its byteLength at offset 8), nested
+    composites flattened."""
+    if depth > 8:
+        raise GisFormatError(path, "composite tiles nested deeper than 8")
+    if len(data) < 16:
+        raise GisFormatError(path, "truncated cmpt header")
+    _, _, total, n_tiles = struct.unpack("<4sIII", data[:16])
+    tiles, at = [], 16
+    for k in range(n_tiles):
+        if at + 12 > min(total, len(data)):
+            raise GisFormatError(path, f"composite tile truncated at its inner tile {k} of {n_tiles}")
+        length = struct.unpack("<I", data[at + 8:at + 12])[0]
+        if length < 12 or at + length > len(data):
+            raise GisFormatError(path, f"composite tile: inner tile {k} of {n_tiles} ({length} bytes) runs past the file's end")
+        inner = data[at:at + length]
+        tiles += _cmpt_tiles(path, inner, depth + 1) if inner[:4] == b"cmpt" else [inner]
+        at += length
+    return tiles
+
+
+def _tile_model(path: Path, data: bytes, T_ecef_tile: np.ndarray, spacing: float) -> GisModel:
+    """A tile's content (b3dm, glb, pnts, or a cmpt of them) as a model in ECEF via the tile's transform."""
+    if data[:4] == b"cmpt":
+        models = [_tile_model(path, inner, T_ecef_tile, spacing) for inner in _cmpt_tiles(path, data)]
+        if not models:
+            raise GisFormatError(path, "composite tile holds no tiles")
+        return models[0] if len(models) == 1 else merge_models(models, path)
     rtc = np.zeros(3)
     if data[:4] == b"pnts":
         return _load_pnts(path, data, T_ecef_tile, spacing)
@@ -951,7 +982,7 @@ def _load_tile_content(path: Path, T_ecef_tile: np.ndarray, spacing: float) -> G
         rtc = np.asarray(ft.get("RTC_CENTER", [0, 0, 0]), float)
         data = data[end:]
     if data[:4] != b"glTF":
-        raise GisFormatError(path, f"tile content is neither b3dm, pnts nor glb ({data[:4]!r}: i3dm / cmpt are not read)")
+        raise GisFormatError(path, f"tile content is neither b3dm, pnts, cmpt nor glb ({data[:4]!r}: i3dm is not read)")
     gltf_json = _glb_json(path, data)
     check_gltf_extensions(path, gltf_json)
     cesium_rtc = gltf_json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")

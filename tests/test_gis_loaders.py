@@ -528,6 +528,40 @@ def test_3dtiles_b3dm_tileset(tmp_path):
     assert abs(np.mean(lat) - 47.37) < 1e-3 and abs(np.mean(lon) - 8.54) < 1e-3
 
 
+def _cmpt(*tiles: bytes) -> bytes:
+    return struct.pack("<4sIII", b"cmpt", 1, 16 + sum(map(len, tiles)), len(tiles)) + b"".join(tiles)
+
+
+def test_3dtiles_composite_tiles(tmp_path):
+    """cmpt content (a composite of b3dm / pnts / nested cmpt tiles, 3D Tiles 1.0): every inner tile
+    is loaded in the tile's frame; a truncated composite is refused by name."""
+    from gis.geodesy import LocalFrame, R_ecef_enu
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_ecef_enu(47.37, 8.54), geodetic_to_ecef(47.37, 8.54, 420.0)
+
+    def box_b3dm(east_m: float, height_m: float) -> bytes:
+        box = trimesh.creation.box(extents=[10, height_m, 10])
+        box.apply_translation([east_m, height_m / 2, 0.0])  # glTF Y-up: standing on the ground
+        return _b3dm(trimesh.Scene(box).export(file_type="glb"), np.zeros(3))
+
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(-60, -40, 4000), rng.uniform(-10, 10, 4000), np.zeros(4000)])
+    data = _cmpt(box_b3dm(0.0, 6.0), _pnts(ground, False, np.zeros(3)), _cmpt(box_b3dm(40.0, 14.0)))
+    (tmp_path / "c.cmpt").write_bytes(data)
+    (tmp_path / "tileset.json").write_text(json.dumps({"asset": {"version": "1.0"}, "geometricError": 10, "root": {
+        "boundingVolume": {"sphere": [0, 0, 0, 80]}, "geometricError": 0, "transform": T.T.reshape(-1).tolist(),
+        "content": {"uri": "c.cmpt"}}}))
+    m = load_model(tmp_path, sample_spacing_m=1.0)
+    enu = LocalFrame(47.37, 8.54, 420.0).ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
+    near = lambda e: np.abs(enu[:, 0] - e) < 5.5  # noqa: E731
+    assert enu[near(0.0), 2].max() == pytest.approx(6.0, abs=0.05)    # the b3dm
+    assert enu[near(40.0), 2].max() == pytest.approx(14.0, abs=0.05)  # the nested composite's b3dm
+    assert np.sum(enu[:, 0] < -39) > 200 and np.allclose(enu[enu[:, 0] < -39, 2], 0.0, atol=0.01)  # the pnts
+    (tmp_path / "c.cmpt").write_bytes(data[: len(data) - 50])
+    with pytest.raises(GisFormatError, match="c.cmpt.*inner tile 2 of 3"):
+        load_model(tmp_path, sample_spacing_m=1.0)
+
+
 def _hlod_tileset(tmp_path, refine: str, content_uri_0: str = "tiles/coarse.glb"):
     """A tileset at the site, tile frame ENU: a coarse 60×60×4 m slab (geometric error 5 m), refined
     by two 10 m cubes 40 m apart (error 0), glTF Y-up content."""
