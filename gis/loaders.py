@@ -866,7 +866,7 @@ class TileContent:
 
 def tileset_contents(tile: dict, T_parent: np.ndarray, refine: str, max_geometric_error_m: float,
                      keep: Callable[[dict, np.ndarray], bool] = lambda tile, T: True,
-                     read_subtree: Callable[[str], bytes] | None = None) -> Iterator[TileContent]:
+                     read_subtree: Callable[[str], bytes | None] | None = None) -> Iterator[TileContent]:
     """The contents a viewer needs to show the tileset with at most max_geometric_error_m of error
     (3D Tiles 1.1 §"Geometric error", §"Refinement"): descend while a tile's ``geometricError`` is
     above the target and it has children; a REPLACE tile's content is kept only where the descent
@@ -913,6 +913,7 @@ def _walk_tileset(path: Path, T_parent: np.ndarray, refine: str, spacing: float,
     doc = _read_json(path)
     if not isinstance(doc, dict) or "root" not in doc:
         raise GisFormatError(path, "tileset.json without 'root'")
+
     def read_subtree(uri: str) -> bytes | None:
         sub = resolve(path, uri)
         if sub is None:  # (a download mirror: outside what this fetch needed, left out like a tile)

@@ -286,11 +286,15 @@ def read_map_header(path: Path | str) -> MapHeader:
     if sha != _content_hash(header, arrays):
         raise MapFileError(path, "content does not match its SHA-256 (corrupted)")
     try:
-        return MapHeader(int(header["map_id"]), int(header["reset_counter"]), float(header["created_wall_s"]),
-                         float(header["created_mono_s"]), int(header["n_keyframes"]), int(header["n_points"]),
-                         dict(header.get("attachments") or {}))
+        return _map_header(header)
     except (KeyError, TypeError, ValueError) as e:
         raise MapFileError(path, f"inconsistent header ({type(e).__name__}: {e})") from None
+
+
+def _map_header(header: dict) -> MapHeader:
+    return MapHeader(int(header["map_id"]), int(header["reset_counter"]), float(header["created_wall_s"]),
+                     float(header["created_mono_s"]), int(header["n_keyframes"]), int(header["n_points"]),
+                     dict(header.get("attachments") or {}))
 
 
 def load_map_file(path: Path | str, camera: CameraModel) -> LoadedMap:
@@ -308,9 +312,7 @@ def load_map_file(path: Path | str, camera: CameraModel) -> LoadedMap:
     _check_arrays(path, arrays)
     try:
         slam_map = _unpack(arrays, int(header["next_kf_id"]), int(header["next_point_id"]))
-        hdr = MapHeader(int(header["map_id"]), int(header["reset_counter"]), float(header["created_wall_s"]),
-                        float(header["created_mono_s"]), int(header["n_keyframes"]), int(header["n_points"]),
-                        dict(header.get("attachments") or {}))
+        hdr = _map_header(header)
     except (KeyError, TypeError, ValueError, IndexError) as e:
         raise MapFileError(path, f"inconsistent content ({type(e).__name__}: {e})") from None
     if (hdr.n_keyframes, hdr.n_points) != (len(slam_map.keyframes), len(slam_map.points)):
