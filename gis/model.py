@@ -142,6 +142,22 @@ def frame_at_centroid(p_ecef_m: np.ndarray) -> LocalFrame:
     return LocalFrame(float(lat), float(lon), float(h))
 
 
+EARTH_SHELL_M = (6_300_000.0, 6_450_000.0)  # |ECEF| of anything on Earth: radius 6357-6378 km, heights -50..+70 km
+
+
+def check_on_earth(p_ecef_m: np.ndarray, source_path: Path | str) -> None:
+    """GisFormatError unless every point is finite and within EARTH_SHELL_M of the Earth's centre:
+    else a wrong CRS, a missing transform or a corrupt file (one wild point would also stretch
+    the crop index over a continent)."""
+    r = np.linalg.norm(np.asarray(p_ecef_m, float), axis=1)
+    bad = ~((r >= EARTH_SHELL_M[0]) & (r <= EARTH_SHELL_M[1]))  # (NaN counts as bad)
+    if bad.any():
+        off = np.abs(r[bad] - 6_371_000.0)
+        worst = f"up to {np.nanmax(off) / 1e3:.0f} km off" if np.isfinite(off).any() else "not finite"
+        raise GisFormatError(source_path, f"{int(bad.sum())} of {len(r)} points are not near the Earth's surface "
+                                          f"({worst}): wrong CRS, a missing transform or a corrupt file")
+
+
 def model_from_ecef(
     p_ecef_m: np.ndarray,
     normals_ecef: np.ndarray,
@@ -150,9 +166,11 @@ def model_from_ecef(
     source_path: Path | str,
     origin: LocalFrame | None = None,
 ) -> GisModel:
-    """Build a GisModel from ECEF points and ECEF-frame normals (origin: centroid unless given)."""
+    """Build a GisModel from ECEF points and ECEF-frame normals (origin: centroid unless given);
+    the points must be on Earth (check_on_earth)."""
     if len(p_ecef_m) == 0:
         raise GisFormatError(source_path, "no geometry found")
+    check_on_earth(p_ecef_m, source_path)
     origin = origin or frame_at_centroid(p_ecef_m)
     R = origin.R_ecef_enu
     n = np.asarray(normals_ecef, float) @ R

@@ -562,6 +562,71 @@ def test_3dtiles_composite_tiles(tmp_path):
         load_model(tmp_path, sample_spacing_m=1.0)
 
 
+def _oct16(v: np.ndarray) -> np.ndarray:
+    """Unit vectors → 16-bit oct encoding (the inverse of the loader's decode; Cigolle et al. 2014)."""
+    v = v / np.abs(v).sum(axis=1, keepdims=True)
+    x, y = v[:, 0], v[:, 1]
+    sx, sy = np.where(x >= 0, 1.0, -1.0), np.where(y >= 0, 1.0, -1.0)
+    x, y = np.where(v[:, 2] < 0, (1 - np.abs(v[:, 1])) * sx, x), np.where(v[:, 2] < 0, (1 - np.abs(v[:, 0])) * sy, y)
+    return np.round((np.column_stack([x, y]) + 1) / 2 * 65535).astype("<u2")
+
+
+def _i3dm(ft: dict, body: bytes, glb_or_uri: bytes, gltf_format: int = 1) -> bytes:
+    js = json.dumps(ft).encode()
+    js += b" " * ((8 - (32 + len(js)) % 8) % 8)
+    body += b"\x00" * (-len(body) % 8)
+    total = 32 + len(js) + len(body) + len(glb_or_uri)
+    return struct.pack("<4sIIIIIII", b"i3dm", 1, total, len(js), len(body), 0, 0, gltf_format) + js + body + glb_or_uri
+
+
+@pytest.mark.parametrize("orientation", ["normals", "oct32p", "east_north_up"])
+def test_3dtiles_instanced_models(tmp_path, orientation):
+    """i3dm content (trees as instances of one glTF): each instance stands upright at its position
+    however the orientation is given (NORMAL_UP = north, NORMAL_RIGHT = east, as exporters write
+    for Cesium's composition; their oct encoding; EAST_NORTH_UP), scaled by SCALE; positions
+    about RTC_CENTER in ECEF; the glTF by URI too. A truncated i3dm is refused by name."""
+    from gis.geodesy import LocalFrame, R_ecef_enu
+    site = LocalFrame(47.37, 8.54, 420.0)
+    tree = trimesh.creation.box(extents=[2.0, 8.0, 2.0])  # glTF Y-up: 8 m tall, standing on y = 0
+    tree.apply_translation([0.0, 4.0, 0.0])
+    glb = trimesh.Scene(tree).export(file_type="glb")
+    enu = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 0.0]])  # three trees on the ground
+    ecef = site.enu_to_ecef(enu)
+    rtc = site.origin_ecef_m
+    R = np.stack([R_ecef_enu(*site.enu_to_geodetic(p)[:2]) for p in enu])  # columns east, north, up
+    scale = np.array([1.0, 2.0, 1.0], "<f4")
+    ft = {"INSTANCES_LENGTH": 3, "RTC_CENTER": rtc.tolist(), "POSITION": {"byteOffset": 0}, "SCALE": {"byteOffset": 36}}
+    body = (ecef - rtc).astype("<f4").tobytes() + scale.tobytes()
+    if orientation == "normals":
+        ft.update(NORMAL_UP={"byteOffset": 48}, NORMAL_RIGHT={"byteOffset": 84})
+        body += R[:, :, 1].astype("<f4").tobytes() + R[:, :, 0].astype("<f4").tobytes()
+    elif orientation == "oct32p":
+        ft.update(NORMAL_UP_OCT32P={"byteOffset": 48}, NORMAL_RIGHT_OCT32P={"byteOffset": 60})
+        body += _oct16(R[:, :, 1]).tobytes() + _oct16(R[:, :, 0]).tobytes()
+    else:
+        ft["EAST_NORTH_UP"] = True
+    (tmp_path / "trees.i3dm").write_bytes(_i3dm(ft, body, glb))
+    (tmp_path / "tileset.json").write_text(json.dumps({"asset": {"version": "1.0"}, "geometricError": 10, "root": {
+        "boundingVolume": {"sphere": [*rtc, 80]}, "geometricError": 0, "content": {"uri": "trees.i3dm"}}}))
+    m = load_model(tmp_path, sample_spacing_m=0.5)
+    p = site.ecef_to_enu(m.origin.enu_to_ecef(m.points_enu))
+    for (e, n, _), s in zip(enu, scale):
+        at = np.hypot(p[:, 0] - e, p[:, 1] - n) < 3.0 * s
+        assert at.sum() > 50
+        assert p[at, 2].min() == pytest.approx(0.0, abs=0.05) and p[at, 2].max() == pytest.approx(8.0 * s, abs=0.05)
+        assert np.ptp(p[at, 0]) == pytest.approx(2.0 * s, abs=0.6) and np.ptp(p[at, 1]) == pytest.approx(2.0 * s, abs=0.6)
+    if orientation == "normals":  # the same glTF by URI beside the tile
+        (tmp_path / "tree.glb").write_bytes(glb)
+        (tmp_path / "trees.i3dm").write_bytes(_i3dm(ft, body, b"tree.glb", gltf_format=0))
+        assert len(load_model(tmp_path, sample_spacing_m=0.5)) == len(m)
+        (tmp_path / "tree.glb").unlink()
+        with pytest.raises(GisFormatError, match="trees.i3dm: its glTF tree.glb is missing"):
+            load_model(tmp_path, sample_spacing_m=0.5)
+    (tmp_path / "trees.i3dm").write_bytes(_i3dm(ft, body, glb)[:200])
+    with pytest.raises(GisFormatError, match="trees.i3dm.*(truncated|byteLength)"):
+        load_model(tmp_path, sample_spacing_m=0.5)
+
+
 def _hlod_tileset(tmp_path, refine: str, content_uri_0: str = "tiles/coarse.glb"):
     """A tileset at the site, tile frame ENU: a coarse 60×60×4 m slab (geometric error 5 m), refined
     by two 10 m cubes 40 m apart (error 0), glTF Y-up content."""
@@ -624,6 +689,17 @@ def test_3dtiles_point_cloud_tiles(tmp_path, quantized):
     assert 0.0 <= enu[:, :2].min() and enu[:, :2].max() <= 40.0
     assert 1400 < len(m) < 2 * 1700  # ~one per m² of 1600 m², a voxel holding both faces of the step edge or not
     assert np.median(np.abs(m.normals_enu[:, 2])) > 0.99
+
+
+def test_3dtiles_content_off_the_earth_is_refused(tmp_path):
+    """A tile whose points are not ECEF (a tileset without its transform: local metres about the
+    Earth's centre) is refused by name instead of becoming a model, or a crop index, a continent wide."""
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "c.pnts").write_bytes(_pnts(np.random.default_rng(0).uniform(0, 40, (500, 3)), False, np.zeros(3)))
+    (tmp_path / "tileset.json").write_text(json.dumps({"asset": {"version": "1.0"}, "geometricError": 10, "root": {
+        "boundingVolume": {"sphere": [0, 0, 0, 60]}, "geometricError": 0, "content": {"uri": "t/c.pnts"}}}))
+    with pytest.raises(GisFormatError, match=r"c.pnts: \d+ of \d+ points are not near the Earth's surface"):
+        load_model(tmp_path)
 
 
 @pytest.mark.parametrize("refine,spacing_m,expect", [
