@@ -8,8 +8,8 @@ whose children ``implicit_children`` makes on demand, so ``gis.loaders.tileset_c
 like any tileset and reads only the subtrees the walk reaches (a terrain tileset's tree is huge;
 its selection for one site is not).
 
-Hand-written: no Python library in our stack reads subtree files (py3dtiles writes explicit
-point-cloud tilesets only), and the format is small: a 24-byte header, JSON, one binary chunk.
+Hand-written: no library among our dependencies reads subtree files for a selection walk, and
+the format is small: a 24-byte header, JSON, one binary chunk.
 """
 from __future__ import annotations
 
