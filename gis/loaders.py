@@ -238,6 +238,7 @@ def _georeferenced(path: Path, p_file: np.ndarray, n_file: np.ndarray | None, la
         n_ecef = None if n_file is None else _normals_to_ecef(p, n_file, crs, vertical)
     except ValueError as e:
         raise GisFormatError(path, f"cannot transform from {crs.name}: {e}") from None
+    check_on_earth(ecef, path)  # (e.g. a projected CRS given for geographic coordinates)
     if n_ecef is None:
         origin = frame_at_centroid(ecef)
         p_enu = origin.ecef_to_enu(ecef)

@@ -116,6 +116,17 @@ def test_ply_point_cloud_egm96_heights(tmp_path):
     assert np.all(np.abs(np.linalg.norm(m.normals_enu, axis=1) - 1) < 1e-9)
 
 
+def test_point_cloud_whose_heights_leave_the_earth_is_refused(tmp_path):
+    """A sidecar whose offset puts the cloud 200 km up (heights in the wrong unit, a typo): inside
+    the CRS's area horizontally, so only the on-Earth check catches it, by name."""
+    p = np.random.default_rng(0).uniform([0, 0, 0], [50, 50, 1.0], (500, 3))
+    path = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)))
+    path.with_name("cloud.ply.georef.json").write_text(json.dumps({"crs": UTM, "offset_m": [OFFSET[0], OFFSET[1], 2e5]}))
+    with pytest.raises(GisFormatError, match=r"cloud.ply: (\d+) of \1 points are not near the Earth.s surface"):
+        load_model(path)
+
+
 @pytest.mark.parametrize("ext", ["las", "laz"])
 def test_las_laz_with_crs_and_classification(tmp_path, ext, monkeypatch):
     """Read in chunks and thinned to one point per sampling voxel, labels kept with their points."""
