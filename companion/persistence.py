@@ -23,7 +23,7 @@ from companion.config import AppConfig
 from companion.logs import log_event
 from gis.sim3 import Sim3
 from gis.types import Alignment, AlignmentSource
-from slam.persist import LoadedMap, MapFileError, clock_offset_s, load_map_file, read_map_header
+from slam.persist import LoadedMap, MapFileError, MapHeader, clock_offset_s, load_map_file, read_map_header
 from slam.types import CameraModel
 
 log = logging.getLogger("terraslam.persistence")
@@ -108,15 +108,20 @@ def load_saved(cfg: AppConfig, camera: CameraModel, site_id: str) -> Restored | 
         a = alignment_from_json(d, offset_s)
     except (KeyError, TypeError, ValueError) as e:
         return Restored(loaded, None, age_s, f"saved alignment unreadable ({e})")
-    key = (loaded.header.map_id, loaded.header.reset_counter)
     if d.get("site_id") != site_id:
         return Restored(loaded, None, age_s, f"saved alignment is for GIS site {d.get('site_id')!r}, this run uses {site_id!r}")
-    if (a.map_id, a.reset_counter) != key:
-        return Restored(loaded, None, age_s, "saved alignment belongs to another map")
+    why_not = _not_restorable(cfg, loaded.header, a.map_id, a.reset_counter, age_s)
+    return Restored(loaded, a if why_not is None else None, age_s, why_not)
+
+
+def _not_restorable(cfg: AppConfig, header: MapHeader, map_id: int, reset_counter: int, age_s: float) -> str | None:
+    """Why an alignment saved with the map in ``header`` (of map ``map_id``/``reset_counter``,
+    accepted ``age_s`` ago) is not restored whatever the site; None when it is."""
+    if (map_id, reset_counter) != (header.map_id, header.reset_counter):
+        return "saved alignment belongs to another map"
     if age_s > cfg.persistence.max_restore_age_s:
-        return Restored(loaded, None, age_s, f"saved alignment is {age_s:.0f} s old (persistence.max_restore_age_s "
-                                             f"{cfg.persistence.max_restore_age_s:g} s)")
-    return Restored(loaded, a, age_s)
+        return f"saved alignment is {age_s:.0f} s old (persistence.max_restore_age_s {cfg.persistence.max_restore_age_s:g} s)"
+    return None
 
 
 def saved_site(cfg: AppConfig) -> tuple[str, float] | None:
@@ -128,10 +133,10 @@ def saved_site(cfg: AppConfig) -> tuple[str, float] | None:
         h = read_map_header(map_path(cfg))
         d = h.attachments["alignment"]
         age_s = time.time() - float(d["accepted_wall_s"])
-        ok = (int(d["map_id"]), int(d["reset_counter"])) == (h.map_id, h.reset_counter) and isinstance(d["site_id"], str)
+        ok = isinstance(d["site_id"], str) and _not_restorable(cfg, h, int(d["map_id"]), int(d["reset_counter"]), age_s) is None
     except (MapFileError, KeyError, TypeError, ValueError):
         return None
-    return (d["site_id"], age_s) if ok and age_s <= cfg.persistence.max_restore_age_s else None
+    return (d["site_id"], age_s) if ok else None
 
 
 def load_survey(path: Path, camera: CameraModel, site_id: str) -> Restored:
