@@ -476,3 +476,47 @@ def test_triangulation_partners_after_a_relocalisation_are_the_keyframes_that_sh
     assert m.covisible(kf.point_ids, 3) == [ids[-1], ids[2], ids[1]]  # most shared, then newest first
     assert triangulation_partners(m, kf, ids, 0.05) == [ids[2], ids[0]]  # 8 m and 12 m away (not 2 m), not 490 m
     assert triangulation_partners(m, kf, ids, 0.0) == ids[1:3]
+
+
+
+def test_fuse_points_joins_missed_observations_and_merges_duplicates_but_never_a_loaded_point():
+    """Three keyframes 5 m apart looking down at points 100 m below (f = 500 px). The points A and
+    C see, projected into B: point 0 lands on a free feature with its descriptor (the observation
+    is joined); point 1 on a feature holding a duplicate triangulated from B (the two become one,
+    the better observed stays); point 2 on a feature with another descriptor and point 3 5 px from
+    the nearest feature (both left alone); point 4 on a feature held by a loaded (survey) point
+    seen once: the flight's point is fused into it, not the other way round."""
+    from slam.map import Keyframe, SlamMap
+    from slam.mapping import FUSE_RADIUS_PX, fuse_points
+
+    rng = np.random.default_rng(3)
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    m = SlamMap()
+    n = 5
+    P = np.array([[2.0 * i, 1.0, 100.0] for i in range(n)])
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    kfs = []
+    for x_m in (0.0, 10.0, 5.0):  # A, B, C
+        T = make_T(np.eye(3), -np.array([x_m, 0.0, 0.0]))
+        uv, _ = project(K, T, P)
+        kf = Keyframe(m.new_kf_id(), x_m, int(x_m), T, uv.copy(), desc.copy(), np.full(n, -1, np.int64))
+        m.add_keyframe(kf)
+        kfs.append(kf)
+    A, B, C = kfs
+    loaded = m.add_point(P[4] + [0.0, 0.03, 0.0], desc[4], {B.kf_id: 4})  # id 0: the loaded map's
+    B.desc[2] = ~B.desc[2]
+    B.uv_px[3] += [FUSE_RADIUS_PX + 2.0, 0.0]
+    flight = [m.add_point(P[i], desc[i], {A.kf_id: i, C.kf_id: i}) for i in range(n)]
+    dup = m.add_point(P[1] + [0.02, 0.0, 0.0], desc[1], {B.kf_id: 1})
+
+    assert fuse_points(m, K, B, flight, protect_upto=loaded) == (1, 2)
+    assert m.points[flight[0]].obs == {A.kf_id: 0, C.kf_id: 0, B.kf_id: 0} and B.point_ids[0] == flight[0]
+    assert dup not in m.points and m.points[flight[1]].obs == {A.kf_id: 1, C.kf_id: 1, B.kf_id: 1}
+    assert B.point_ids[1] == flight[1]
+    for i in (2, 3):
+        assert B.kf_id not in m.points[flight[i]].obs and B.point_ids[i] == -1
+    assert flight[4] not in m.points and m.points[loaded].obs == {B.kf_id: 4, A.kf_id: 4, C.kf_id: 4}
+    assert A.point_ids[4] == C.point_ids[4] == B.point_ids[4] == loaded
+    assert np.array_equal(m.points[loaded].p_slam, P[4] + [0.0, 0.03, 0.0])  # where it was loaded
+    # again: nothing left to join or merge
+    assert fuse_points(m, K, B, [p for p in flight if p in m.points] + [loaded], protect_upto=loaded) == (0, 0)
