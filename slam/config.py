@@ -36,7 +36,7 @@ class SlamConfig(BaseModel):
     reloc_min_inliers: int = Field(40, ge=10, le=1000, description="PnP inliers needed to accept a relocalization")
     reset_after_lost_frames: int = Field(90, ge=1, le=100000, description="frames lost before the map is abandoned and re-initialized (reset_counter+1)")
     # mapping
-    fuse_keyframes: int = Field(20, ge=0, le=200, description="after triangulating, a new keyframe's points are fused with those of this many most covisible keyframes: missed observations joined, duplicate points merged (ORB-SLAM SearchInNeighbors; slam.mapping.fuse_points); 0: off")
+    fuse_keyframes: int = Field(10, ge=0, le=200, description="after triangulating, a new keyframe's points are fused with those of this many most covisible keyframes: missed observations joined, duplicate points merged (ORB-SLAM SearchInNeighbors; slam.mapping.fuse_points); 0: off")
     local_map_keyframes: int = Field(20, ge=2, le=500, description="keyframes whose points form the tracker's local map")
     ba_iterations: int = Field(5, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
     ba_fixed_keyframes: int = Field(10, ge=0, le=100, description="most fixed border keyframes (that see the window's points) in a local BA; 0: local_window/2, at least 2. More anchors hold the scale through turns")
