@@ -179,6 +179,7 @@ class RunResult:
     kf_T_slam_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # final keyframe poses
     kf_T_enu_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # their truth
     local_ba_cpu_ms: list[float] = field(default_factory=list)  # CPU time of the local BAs (contention-free)
+    fused: tuple[int, int] = (0, 0)  # local mapping's fuse_points: (observations joined, duplicate points merged)
 
     @property
     def tracking_ratio(self) -> float:
@@ -289,7 +290,8 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
         return RunResult(name, np.array(ms), np.array(cpu), states, np.array(est).reshape(-1, 3),
                          np.array(tru).reshape(-1, 3), s.reset_counter, list(st.local_mapping_ms),
                          list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms), list(st.loops),
-                         len(s.mapper.map.points), rss, dropped, kf_T, kf_truth, list(st.local_ba_cpu_ms))
+                         len(s.mapper.map.points), rss, dropped, kf_T, kf_truth, list(st.local_ba_cpu_ms),
+                         (st.fused_observations, st.fused_points))
 
 
 def inject_drifted_revisit(system: SlamSystem, source_kf_ids: list[int], S_drift: np.ndarray) -> list:
@@ -388,7 +390,7 @@ def report(r: RunResult) -> str:
         f"(CPU ms mean {np.mean(r.local_ba_cpu_ms or [np.nan]):.0f}), "
         f"window mean {np.mean(r.ba_window or [np.nan]):.1f} kf; {len(r.local_mapping_ms)} keyframes",
         f"  loops closed {len(r.loops)}  loop-correction ms: {', '.join(f'{x:.0f}' for x in r.loop_ms) or '-'}",
-        f"  map points {r.n_points}  RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
+        f"  map points {r.n_points} (fusing joined {r.fused[0]} observations, merged {r.fused[1]} duplicates)  RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
         f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (shared machine: wall times include contention)",
     ]
     return "\n".join(lines)
@@ -541,7 +543,7 @@ def run_memory(lap: LapFrames, config: SlamConfig, minutes: float, sample_every:
         st = s.mapper.stats
         run = RunResult("memory", ms, np.full(n, np.nan), states, est[ok], tru[ok], s.reset_counter,
                         list(st.local_mapping_ms), list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms),
-                        list(st.loops), len(s.mapper.map.points))
+                        list(st.loops), len(s.mapper.map.points), fused=(st.fused_observations, st.fused_points))
     return samples, run
 
 
