@@ -14,13 +14,12 @@ from dataclasses import dataclass, field
 from itertools import chain
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from slam.ba import BAProblem, BAResult, ba_worker, bundle_adjust
 from slam.config import SlamConfig
 from slam.geometry import correct_pose_by_sim3, parallax_deg, project, ransac_sim3, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
-from slam.matching import TH_LOW, hamming, match_bf
+from slam.matching import TH_LOW, candidates_by_projection, match_bf
 from slam.place import PlaceIndex, place_index_of
 from slam.plm import plm_window, recursive_loop_closing
 from slam.tracking import Shared
@@ -222,13 +221,8 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
     front = np.flatnonzero(z > 0)
     if len(front) == 0:
         return 0, 0
-    k = min(8, len(kf.uv_px))
-    dist_px, idx = cKDTree(kf.uv_px).query(uv[front], k=k, distance_upper_bound=FUSE_RADIUS_PX)
-    dist_px, idx = dist_px.reshape(len(front), k), idx.reshape(len(front), k)
-    valid = np.isfinite(dist_px)
-    idx = np.where(valid, idx, 0)
     desc = np.array([m.points[pids[j]].desc for j in front.tolist()])
-    hd = np.where(valid, hamming(desc[:, None, :], kf.desc[idx]), 1 << 20)
+    hd, idx = candidates_by_projection(uv[front], desc, kf.uv_px, kf.desc, FUSE_RADIUS_PX, k=8)
     b = np.argmin(hd, axis=1)
     rows = np.arange(len(front))
     d1, feat = hd[rows, b], idx[rows, b]

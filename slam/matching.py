@@ -38,6 +38,24 @@ def match_bf(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8,
     return arr[first, :2].astype(int)
 
 
+NO_CANDIDATE = 1 << 20  # the Hamming distance given to a candidate slot with no feature in reach
+
+
+def candidates_by_projection(uv_proj: np.ndarray, desc_pts: np.ndarray, uv_feat: np.ndarray,
+                             desc_feat: np.ndarray, radius_px: float, k: int,
+                             tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``k`` features within ``radius_px`` of each projected point, nearest first: (N,k)
+    Hamming distances to the point's descriptor (NO_CANDIDATE where a slot holds no feature) and
+    (N,k) feature indices. ``uv_feat`` must not be empty."""
+    tree = tree or cKDTree(uv_feat)
+    k = min(k, len(uv_feat))
+    dist_px, idx = tree.query(uv_proj, k=k, distance_upper_bound=radius_px)
+    dist_px, idx = dist_px.reshape(len(uv_proj), k), idx.reshape(len(uv_proj), k)
+    valid = np.isfinite(dist_px)
+    idx = np.where(valid, idx, 0)
+    return np.where(valid, hamming(desc_pts[:, None, :], desc_feat[idx]), NO_CANDIDATE), idx
+
+
 def match_by_projection(uv_proj: np.ndarray, desc_pts: np.ndarray, uv_feat: np.ndarray,
                         desc_feat: np.ndarray, radius_px: float, max_dist: int = TH_HIGH,
                         ratio: float = 0.9, k: int = 8, tree: cKDTree | None = None) -> np.ndarray:
@@ -47,18 +65,12 @@ def match_by_projection(uv_proj: np.ndarray, desc_pts: np.ndarray, uv_feat: np.n
     """
     if len(uv_proj) == 0 or len(uv_feat) < 2:
         return np.zeros((0, 2), int)
-    tree = tree or cKDTree(uv_feat)
-    k = min(k, len(uv_feat))
-    dist_px, idx = tree.query(uv_proj, k=k, distance_upper_bound=radius_px)
-    valid = np.isfinite(dist_px)
-    idx = np.where(valid, idx, 0)
-    hd = hamming(desc_pts[:, None, :], desc_feat[idx])
-    hd = np.where(valid, hd, 1 << 20)
+    hd, idx = candidates_by_projection(uv_proj, desc_pts, uv_feat, desc_feat, radius_px, k, tree)
     order = np.argsort(hd, axis=1)
     best = order[:, 0]
     rows = np.arange(len(uv_proj))
     d1 = hd[rows, best]
-    d2 = hd[rows, order[:, 1]] if k > 1 else np.full(len(rows), 1 << 20)
+    d2 = hd[rows, order[:, 1]] if hd.shape[1] > 1 else np.full(len(rows), NO_CANDIDATE)
     ok = (d1 < max_dist) & (d1 < ratio * d2)
     pts = rows[ok]
     feats = idx[rows, best][ok]
