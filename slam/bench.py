@@ -27,7 +27,7 @@ import numpy as np
 import psutil
 
 from slam.config import SlamConfig
-from slam.geometry import DOWN_SLAM, sim3_scale, umeyama_sim3
+from slam.geometry import DOWN_SLAM, project, sim3_scale, umeyama_sim3
 from slam.mapping import MapMemory
 from slam.system import SlamSystem
 from slam.types import AttitudePrior, CameraModel, Frame, TrackingState
@@ -180,6 +180,7 @@ class RunResult:
     kf_T_enu_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # their truth
     local_ba_cpu_ms: list[float] = field(default_factory=list)  # CPU time of the local BAs (contention-free)
     fused: tuple[int, int] = (0, 0)  # local mapping's fuse_points: (observations joined, duplicate points merged)
+    reproj_px: np.ndarray = field(default_factory=lambda: np.zeros(0))  # every observation's reprojection error in the final map
 
     @property
     def tracking_ratio(self) -> float:
@@ -287,11 +288,30 @@ def run_sequence(seq: Sequence, config: SlamConfig, name: str = "", realtime: bo
         st = s.mapper.stats
         kf_t, kf_T = s.keyframe_poses()
         kf_truth = seq.T_enu_cam[order[np.rint(kf_t * seq.fps).astype(int)]]
+        with s.mapper.map.lock:
+            reproj = map_reprojection_px(s.mapper.map, np.asarray(seq.camera.K, float))
         return RunResult(name, np.array(ms), np.array(cpu), states, np.array(est).reshape(-1, 3),
                          np.array(tru).reshape(-1, 3), s.reset_counter, list(st.local_mapping_ms),
                          list(st.local_ba_ms), list(st.ba_window), list(st.loop_ms), list(st.loops),
                          len(s.mapper.map.points), rss, dropped, kf_T, kf_truth, list(st.local_ba_cpu_ms),
-                         (st.fused_observations, st.fused_points))
+                         (st.fused_observations, st.fused_points), reproj)
+
+
+def map_reprojection_px(m, K: np.ndarray) -> np.ndarray:
+    """Reprojection error [px] of every observation of every map point in the keyframes that
+    still hold their features: how well a map's points and poses agree with what was observed
+    (bundle adjustment minimises it; observations of different scene points under one point raise
+    it). Caller holds m.lock."""
+    errs = []
+    for kf in m.keyframes.values():
+        f = np.flatnonzero(kf.point_ids >= 0)
+        f = f[[int(kf.point_ids[i]) in m.points for i in f.tolist()]]
+        if len(f) == 0:
+            continue
+        P = np.array([m.points[int(kf.point_ids[i])].p_slam for i in f.tolist()])
+        uv, z = project(K, kf.T_cam_slam, P)
+        errs.append(np.linalg.norm(uv - kf.uv_px[f], axis=1)[z > 0])
+    return np.concatenate(errs) if errs else np.zeros(0)
 
 
 def inject_drifted_revisit(system: SlamSystem, source_kf_ids: list[int], S_drift: np.ndarray) -> list:
@@ -391,6 +411,7 @@ def report(r: RunResult) -> str:
         f"window mean {np.mean(r.ba_window or [np.nan]):.1f} kf; {len(r.local_mapping_ms)} keyframes",
         f"  loops closed {len(r.loops)}  loop-correction ms: {', '.join(f'{x:.0f}' for x in r.loop_ms) or '-'}",
         f"  map points {r.n_points} (fusing joined {r.fused[0]} observations, merged {r.fused[1]} duplicates)  RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
+        f"  observations' reprojection error in the final map: median {_p(r.reproj_px, 50):.2f} px, P90 {_p(r.reproj_px, 90):.2f} px",
         f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (shared machine: wall times include contention)",
     ]
     return "\n".join(lines)

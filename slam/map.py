@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.geometry import camera_center
+from slam.patches import STORED_PX, ImageLevels
 
 # What a forgotten keyframe keeps instead of its features: shared read-only empty arrays (a slice
 # like ``desc[:0]`` would be a view that keeps the whole feature buffer alive).
@@ -24,11 +25,14 @@ class Keyframe:
     t_s: float
     seq: int
     T_cam_slam: np.ndarray
-    uv_px: np.ndarray  # (N,2) undistorted
+    uv_px: np.ndarray  # (N,2) undistorted; a feature with a map point: where the point's reference patch aligned (slam.patches)
     desc: np.ndarray  # (N,32)
     point_ids: np.ndarray  # (N,) int64, -1 where the feature has no map point
     g_cam: np.ndarray | None = None  # (3,) unit gravity ("down") in the camera frame, autopilot prior
     gravity_sigma_rad: float | None = None  # its 1-sigma angle
+    # the image (all levels) and the features' octaves, while local mapping may still cut reference
+    # patches from it or align patches in it (slam.patches); dropped after a few keyframes, never saved
+    levels: ImageLevels | None = None
 
     @property
     def center(self) -> np.ndarray:
@@ -40,7 +44,8 @@ class Keyframe:
         return len(self.desc) > 0
 
     def feature_bytes(self) -> int:
-        return self.uv_px.nbytes + self.desc.nbytes + self.point_ids.nbytes
+        lv = 0 if self.levels is None else self.levels.atlas.nbytes + self.levels.octave.nbytes
+        return self.uv_px.nbytes + self.desc.nbytes + self.point_ids.nbytes + lv
 
 
 @dataclass
@@ -50,6 +55,8 @@ class MapPoint:
     desc: np.ndarray
     obs: dict[int, int] = field(default_factory=dict)  # kf_id -> feature index
     first_kf: int = 0
+    patch: np.ndarray | None = None  # (STORED_PX, STORED_PX) uint8 reference patch (slam.patches), None: none
+    patch_octave: int = -1  # the pyramid level it was cut at
 
 
 @dataclass(frozen=True)
@@ -60,6 +67,8 @@ class LocalMap:
     p_slam: np.ndarray
     desc: np.ndarray
     version: int
+    patches: np.ndarray | None = None  # (N, STORED_PX, STORED_PX) uint8 reference patches (slam.patches)
+    patch_octave: np.ndarray | None = None  # (N,) their pyramid levels, -1 where a point has none
 
 
 @dataclass(frozen=True)
@@ -71,7 +80,7 @@ class MapSize:
     map_points: int
     observations: int
     feature_bytes: int  # keyframes' pixels + descriptors + point ids
-    point_bytes: int  # map points' positions + descriptors (arrays only)
+    point_bytes: int  # map points' positions + descriptors + reference patches (arrays only)
 
 
 class SlamMap:
@@ -158,7 +167,7 @@ class SlamMap:
                 mp.obs.pop(kf_id, None)
                 if not mp.obs:
                     del self.points[pid]
-        kf.uv_px, kf.desc, kf.point_ids = _NO_UV, _NO_DESC, _NO_IDS
+        kf.uv_px, kf.desc, kf.point_ids, kf.levels = _NO_UV, _NO_DESC, _NO_IDS, None
 
     def drop_keyframe(self, kf_id: int) -> None:
         """Remove a keyframe entirely (its features must already be forgotten)."""
@@ -171,7 +180,7 @@ class SlamMap:
         pts = self.points.values()
         return MapSize(len(self.keyframes), sum(k.has_features for k in kfs), len(self.points),
                        sum(len(p.obs) for p in pts), sum(k.feature_bytes() for k in kfs),
-                       sum(p.p_slam.nbytes + p.desc.nbytes for p in pts))
+                       sum(p.p_slam.nbytes + p.desc.nbytes + (0 if p.patch is None else p.patch.nbytes) for p in pts))
 
     def kf_ids(self) -> list[int]:
         return sorted(self.keyframes)
@@ -196,6 +205,11 @@ class SlamMap:
         pids = np.array(sorted(i for i in ids if i in self.points), dtype=np.int64)
         if len(pids) == 0:
             return LocalMap(pids, np.zeros((0, 3)), np.zeros((0, 32), np.uint8), version)
-        P = np.array([self.points[i].p_slam for i in pids.tolist()])
-        D = np.array([self.points[i].desc for i in pids.tolist()])
-        return LocalMap(pids, P, D, version)
+        pts = [self.points[i] for i in pids.tolist()]
+        P = np.array([p.p_slam for p in pts])
+        D = np.array([p.desc for p in pts])
+        octave = np.array([p.patch_octave if p.patch is not None else -1 for p in pts], np.int8)
+        patches = np.zeros((len(pts), STORED_PX, STORED_PX), np.uint8)
+        for j in np.flatnonzero(octave >= 0).tolist():
+            patches[j] = pts[j].patch
+        return LocalMap(pids, P, D, version, patches, octave)

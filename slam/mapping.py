@@ -20,6 +20,7 @@ from slam.config import SlamConfig
 from slam.geometry import correct_pose_by_sim3, parallax_deg, project, ransac_sim3, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import TH_LOW, candidates_by_projection, match_bf
+from slam.patches import PatchAligner
 from slam.place import PlaceIndex, place_index_of
 from slam.plm import plm_window, recursive_loop_closing
 from slam.tracking import Shared
@@ -202,7 +203,8 @@ def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baselin
 FUSE_RADIUS_PX = 3.0  # a neighbour's point must project this close to a feature (ORB-SLAM Fuse, th=3)
 
 
-def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protect_upto: int = -1) -> tuple[int, int]:
+def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protect_upto: int = -1,
+                aligner: PatchAligner | None = None) -> tuple[int, int]:
     """Project map points ``pids`` into keyframe ``kf`` and join each to the feature it lands on
     (ORB-SLAM's Fuse in SearchInNeighbors): the closest descriptor within FUSE_RADIUS_PX and
     Hamming TH_LOW. A feature without a point gains the observation; a feature that holds another
@@ -211,8 +213,9 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
     fused away). Without this a point the tracker missed for a frame or two was triangulated again
     beside itself, each copy seen by fewer keyframes (nominal, 900 frames: 6 360 keyframe views of a
     point landed on a feature that held another point; fusing merges a third of them and adds 18 %
-    more observations, docs/BENCHMARKS.md). Caller holds m.lock. Returns (observations added,
-    points fused)."""
+    more observations, docs/BENCHMARKS.md). With ``aligner`` and kf's image still held, a joined
+    observation is placed where the point's reference patch aligns (slam.patches). Caller holds
+    m.lock. Returns (observations added, points fused)."""
     pids = [p for p in pids if p in m.points and kf.kf_id not in m.points[p].obs]
     if not pids or not kf.has_features:
         return 0, 0
@@ -229,7 +232,8 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
     ok = np.flatnonzero(d1 <= TH_LOW)
     ok = ok[np.argsort(d1[ok], kind="stable")]
     _, first = np.unique(feat[ok], return_index=True)  # each feature to its closest descriptor
-    added = fused = 0
+    fused = 0
+    joined: list[tuple[int, int]] = []  # (feature, point)
     for i in ok[first].tolist():
         f, pid = int(feat[i]), pids[int(front[i])]
         held = int(kf.point_ids[f])
@@ -238,7 +242,7 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
         if held < 0 or held not in m.points:
             m.points[pid].obs[kf.kf_id] = f
             kf.point_ids[f] = pid
-            added += 1
+            joined.append((f, pid))
             continue
         keep, drop = (pid, held) if len(m.points[pid].obs) >= len(m.points[held].obs) else (held, pid)
         if drop <= protect_upto:
@@ -247,13 +251,49 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
                 continue  # both loaded: left as the map was saved
         m.replace_point(drop, keep)
         fused += 1
-    return added, fused
+    if aligner is not None:
+        align_observations(aligner, m, kf, [(f, p) for f, p in joined if p in m.points])
+    return len(joined), fused
+
+
+def align_observations(aligner: PatchAligner, m: SlamMap, kf: Keyframe, obs: list[tuple[int, int]]) -> int:
+    """Move kf's features ``obs`` ((feature, point) pairs) to where their points' reference patches
+    align in kf's image (slam.patches); those without a patch, or kf without its image, stay.
+    Caller holds m.lock. Returns how many moved."""
+    obs = [(f, p) for f, p in obs if m.points[p].patch is not None]
+    if kf.levels is None or not obs:
+        return 0
+    f = np.array([o[0] for o in obs])
+    pts = [m.points[o[1]] for o in obs]
+    uv, ok = aligner.align(kf.levels, np.array([p.patch for p in pts]), np.array([p.patch_octave for p in pts]), kf.uv_px[f])
+    kf.uv_px[f[ok]] = uv[ok]
+    return int(ok.sum())
+
+
+LEVELS_KEYFRAMES = 10  # the newest keyframes keep their image for patch alignment (~1 MB each at 640x480)
+
+
+def cut_patches(aligner: PatchAligner, m: SlamMap, kf: Keyframe) -> int:
+    """Give every point kf observes that has no reference patch one, cut from kf's image at its
+    observation (slam.patches). Caller holds m.lock. Returns how many were given one."""
+    if kf.levels is None:
+        return 0
+    f = np.array([i for i, p in enumerate(kf.point_ids.tolist()) if p >= 0 and p in m.points and m.points[p].patch is None], int)
+    if len(f) == 0:
+        return 0
+    octave = kf.levels.octave[f]
+    patches, ok = aligner.cut(kf.levels, kf.uv_px[f], octave)
+    for j in np.flatnonzero(ok).tolist():
+        mp = m.points[int(kf.point_ids[f[j]])]
+        mp.patch, mp.patch_octave = patches[j], int(octave[j])
+    return int(ok.sum())
 
 
 class LocalMapper:
     def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
-                 reset_counter: int = 0, keep_loaded: bool = False) -> None:
+                 reset_counter: int = 0, keep_loaded: bool = False, aligner: PatchAligner | None = None) -> None:
         self.K = K
+        self.aligner = aligner  # reference patches for new points, sub-pixel observations (slam.patches)
         self.config = config
         self.shared = shared
         self.map = slam_map
@@ -352,6 +392,9 @@ class LocalMapper:
             ids = self._neighbourhood(kf, m.kf_ids()) if self._loaded_upto >= 0 else m.kf_ids()
         self._finish_ba(wait=False)
         self._triangulate(kf, ids)
+        if self.aligner is not None:
+            with m.lock:
+                cut_patches(self.aligner, m, kf)
         self._fuse(kf)
         self._cull(kf, ids)
         self._local_ba(kf, ids)  # submitted to the worker; applied when done (_finish_ba)
@@ -361,6 +404,9 @@ class LocalMapper:
         if c.loop_closing != "off":
             self._loop(kf)  # waits for the in-flight local BA before moving the map
         self._forget_old()
+        with m.lock:
+            for k in m.kf_ids()[:-LEVELS_KEYFRAMES]:
+                m.keyframes[k].levels = None
 
     # --- local mapping --------------------------------------------------------------------------
     def _neighbourhood(self, kf: Keyframe, ids: list[int]) -> list[int]:
@@ -396,13 +442,32 @@ class LocalMapper:
             if len(pairs) == 0:
                 continue
             ia, ib = a[pairs[:, 0]], b[pairs[:, 1]]
-            p, good = triangulate(self.K, kf.T_cam_slam, other.T_cam_slam, kf.uv_px[ia], other.uv_px[ib],
+            uv_b, patches, octave = self._partner_observations(kf, other, ia, ib)
+            p, good = triangulate(self.K, kf.T_cam_slam, other.T_cam_slam, kf.uv_px[ia], uv_b,
                                   max_reproj_px=2.0, min_parallax_deg=1.0)
             with m.lock:
                 for k in np.flatnonzero(good):
                     i, j = int(ia[k]), int(ib[k])
                     if kf.point_ids[i] < 0 and other.point_ids[j] < 0:
-                        m.add_point(p[k], kf.desc[i], {kf.kf_id: i, other.kf_id: j})
+                        pid = m.add_point(p[k], kf.desc[i], {kf.kf_id: i, other.kf_id: j})
+                        other.uv_px[j] = uv_b[k]
+                        if octave[k] >= 0:
+                            m.points[pid].patch, m.points[pid].patch_octave = patches[k], int(octave[k])
+
+    def _partner_observations(self, kf: Keyframe, other: Keyframe, ia: np.ndarray,
+                              ib: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For new points between kf's features ia and other's ib: other's observations placed where
+        kf's patches align in other's image (slam.patches), the patches, and their levels (-1: no
+        patch). Without the images: other's features as detected."""
+        uv_b = other.uv_px[ib]
+        if self.aligner is None or kf.levels is None:
+            return uv_b, np.zeros((len(ia), 0, 0), np.uint8), np.full(len(ia), -1)
+        octave = kf.levels.octave[ia].astype(int)
+        patches, ok = self.aligner.cut(kf.levels, kf.uv_px[ia], octave)
+        octave = np.where(ok, octave, -1)
+        if other.levels is not None:
+            uv_b = self.aligner.align(other.levels, patches, octave, uv_b)[0]
+        return uv_b, patches, octave
 
     def _fuse(self, kf: Keyframe) -> None:
         """The new keyframe's points into its ``fuse_keyframes`` most covisible keyframes, and
@@ -414,10 +479,10 @@ class LocalMapper:
         with m.lock:
             own = kf.point_ids[kf.point_ids >= 0].tolist()
             nbrs = [m.keyframes[k] for k in m.covisible(own, n + 1) if k != kf.kf_id and m.keyframes[k].has_features]
-            done = [fuse_points(m, self.K, o, kf.point_ids[kf.point_ids >= 0].tolist(), self._loaded_pt_upto)
+            done = [fuse_points(m, self.K, o, kf.point_ids[kf.point_ids >= 0].tolist(), self._loaded_pt_upto, self.aligner)
                     for o in nbrs]
             theirs = {int(p) for o in nbrs for p in o.point_ids if p >= 0}
-            done.append(fuse_points(m, self.K, kf, sorted(theirs), self._loaded_pt_upto))
+            done.append(fuse_points(m, self.K, kf, sorted(theirs), self._loaded_pt_upto, self.aligner))
         self.stats.fused_observations += sum(a for a, _ in done)
         self.stats.fused_points += sum(f for _, f in done)
 

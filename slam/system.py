@@ -24,6 +24,7 @@ from slam.features import make_extractor
 from slam.geometry import inv_T
 from slam.map import LocalMap
 from slam.mapping import LocalMapper
+from slam.patches import PatchAligner
 from slam.persist import LoadedMap, MapFileError, SavedMap, new_map_id, save_map_file, snapshot_map
 from slam.tracking import Gravity, Tracker
 from slam.types import AttitudePrior, CameraModel, Frame, MapUpdate, SlamPose, TrackingState
@@ -42,19 +43,21 @@ class SlamSystem:
         if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"camera.K must be a 3x3 intrinsics matrix with positive focal lengths, got {K!r}")
         extract = make_extractor(camera, self.config)
+        aligner = PatchAligner(camera) if self.config.patch_alignment else None
         if initial_map is None:
-            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract)
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, aligner=aligner)
             self.map_id, self.reset_counter = new_map_id(), 0
         else:
             if not initial_map.slam_map.keyframes:
                 raise MapFileError(initial_map.path, "the map has no keyframes")
-            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, map=initial_map.slam_map)
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, map=initial_map.slam_map,
+                                   aligner=aligner)
             self.tracker.resume(reloc_timeout_s)
             self.map_id, self.reset_counter = initial_map.header.map_id, initial_map.header.reset_counter
         self._map_ids = {self.reset_counter: self.map_id}  # reset_counter -> map_id, for MapUpdates
         self._current = (self.tracker.map, self.map_id, self.reset_counter)  # swapped as one (save_map reads it)
         self.mapper = LocalMapper(K, self.config, self.tracker.shared, self.tracker.map, reset_counter=self.reset_counter,
-                                  keep_loaded=keep_loaded)
+                                  keep_loaded=keep_loaded, aligner=aligner)
         self.restored = initial_map is not None
         self._last_seq: int | None = None
 

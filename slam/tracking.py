@@ -16,6 +16,7 @@ from slam.features import Features
 from slam.geometry import R_slam_cam_levelled, T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
 from slam.map import Keyframe, LocalMap, SlamMap
 from slam.matching import TH_LOW, match_bf, match_by_projection
+from slam.patches import ImageLevels, PatchAligner
 from slam.types import Frame, TrackingState
 
 
@@ -26,6 +27,7 @@ class PoseEstimate:
     inlier_pid: np.ndarray  # their map point ids
     inlier_p_slam: np.ndarray  # (N, 3) their positions in the SLAM frame, as the pose was solved with them
     local_map: LocalMap  # the map the pose was solved against
+    inlier_lm: np.ndarray  # (N,) their rows in local_map
 
 
 def solve_pnp(K: np.ndarray, p_slam: np.ndarray, uv_px: np.ndarray, T_guess: np.ndarray | None,
@@ -96,6 +98,7 @@ class _Init:
     frame: Frame
     feats: Features
     gravity: Gravity | None = None
+    levels: ImageLevels | None = None
 
 
 def reloc_keyframes(kf_ids: list[int], place_ids: list[int], n_recent: int, n_neighbours: int = 2) -> list[int]:
@@ -118,6 +121,7 @@ class Tracker:
     config: SlamConfig
     extract: Callable[[np.ndarray], Features]
     map: SlamMap = field(default_factory=SlamMap)
+    aligner: PatchAligner | None = None  # sub-pixel observations from the points' reference patches (slam.patches)
     shared: Shared = field(default_factory=Shared)
     state: TrackingState = TrackingState.INITIALIZING
     T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -207,7 +211,13 @@ class Tracker:
         if self._need_keyframe(est.T_cam_slam, n):
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
-            kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity)
+            uv = feats.uv_px.copy()
+            levels = self._levels_of(frame, feats)
+            lm = est.local_map
+            if levels is not None and lm.patches is not None:  # observed where their points' patches align
+                uv[est.inlier_feat] = self.aligner.align(levels, lm.patches[est.inlier_lm], lm.patch_octave[est.inlier_lm],
+                                                         uv[est.inlier_feat])[0]
+            kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity, uv, levels)
             self._keyed(est.T_cam_slam, n)
         return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)
 
@@ -234,10 +244,13 @@ class Tracker:
         self.shared.mapping_busy = True
 
     def _keyframe(self, frame: Frame, T_cam_slam: np.ndarray, feats: Features, point_ids: np.ndarray,
-                  gravity: Gravity | None) -> Keyframe:
+                  gravity: Gravity | None, uv_px: np.ndarray | None = None, levels: ImageLevels | None = None) -> Keyframe:
+        """uv_px: the features' observed positions (default: as detected); levels: the frame's image
+        for local mapping's patch alignment."""
         use = gravity is not None and self.map.gravity_aligned
         g, sigma = (gravity.g_cam, gravity.sigma_rad) if use else (None, None)
-        return Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, T_cam_slam, feats.uv_px, feats.desc, point_ids, g, sigma)
+        uv = feats.uv_px if uv_px is None else uv_px
+        return Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, T_cam_slam, uv, feats.desc, point_ids, g, sigma, levels)
 
     def _track_local_map(self, feats: Features, T_pred: np.ndarray) -> PoseEstimate | None:
         lm = self.shared.local_map
@@ -277,7 +290,11 @@ class Tracker:
             if sol2 is not None and sol2[1].sum() >= inl.sum():
                 T, inl = sol2
                 pts, pairs = pts2, pairs2
-        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm)
+        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm, pts[inl])
+
+    def _levels_of(self, frame: Frame, feats: Features) -> ImageLevels | None:
+        """The frame's image levels for patch alignment (slam.patches); None without an aligner."""
+        return None if self.aligner is None else self.aligner.levels(frame.image, feats.octave)
 
     def _apply_correction(self) -> None:
         gen, S = self.shared.correction
@@ -353,12 +370,12 @@ class Tracker:
         """Two-view monocular initialization once the reference frame has enough parallax."""
         c = self.config
         if self._init is None or len(self._init.feats) < c.init_min_matches:
-            self._init = _Init(frame, feats, self._gravity)
+            self._init = _Init(frame, feats, self._gravity, self._levels_of(frame, feats))
             return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
         ref = self._init.feats
         pairs = match_bf(ref.desc, feats.desc, ratio=0.75, max_dist=TH_LOW + 14)
         if len(pairs) < c.init_min_matches:
-            self._init = _Init(frame, feats, self._gravity)  # too much changed: restart from this frame
+            self._init = _Init(frame, feats, self._gravity, self._levels_of(frame, feats))  # too much changed: restart from this frame
             return TrackResult(TrackingState.INITIALIZING, np.eye(4), 0)
         uv1, uv2 = ref.uv_px[pairs[:, 0]], feats.uv_px[pairs[:, 1]]
         if np.median(np.linalg.norm(uv2 - uv1, axis=1)) < c.init_min_flow_px:
@@ -382,8 +399,10 @@ class Tracker:
         m = self.map
         with m.lock:
             m.gravity_aligned = g1 is not None
-            kf1 = self._keyframe(self._init.frame, T_cam1_slam, ref, np.full(len(ref), -1, np.int64), self._init.gravity)
-            kf2 = self._keyframe(frame, T2, feats, np.full(len(feats), -1, np.int64), self._gravity)
+            kf1 = self._keyframe(self._init.frame, T_cam1_slam, ref, np.full(len(ref), -1, np.int64), self._init.gravity,
+                                 levels=self._init.levels)
+            kf2 = self._keyframe(frame, T2, feats, np.full(len(feats), -1, np.int64), self._gravity,
+                                 levels=self._levels_of(frame, feats))
             m.add_keyframe(kf1)
             m.add_keyframe(kf2)
             for p, i1, i2 in zip(pts, pairs[good, 0], pairs[good, 1]):

@@ -119,6 +119,18 @@ def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
     assert r.ate()[0] < max(2 * cpu_run.ate()[0], 1.0), (r.ate(), cpu_run.ate())
 
 
+def test_patch_alignment_makes_each_points_observations_agree(nominal, cpu_run):
+    """With slam.patch_alignment (the default) every observation of a point is where the patch it
+    was first seen with aligns, not where an ORB corner was detected again: the final map's
+    observations reproject much closer to their points (measured: median 0.25 px against 0.59 px
+    without)."""
+    off = run_sequence(nominal, SlamConfig(patch_alignment=False), "cpu")
+    on_px, off_px = np.median(cpu_run.reproj_px), np.median(off.reproj_px)
+    assert len(cpu_run.reproj_px) > 1000 and len(off.reproj_px) > 1000
+    assert on_px < 0.6 * off_px, (on_px, off_px)
+    assert cpu_run.ate()[0] < 1.0
+
+
 @pytest.mark.parametrize("mode", ["recursive", "full"])
 def test_loop_closure_undoes_injected_drift(nominal, mode):
     """A drifted, disconnected revisit of earlier keyframes (copies with new points moved by a
