@@ -162,6 +162,8 @@ def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarra
 
 
 TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
+STARVING_TRACKED = 100  # a new keyframe tracking fewer map points than this gets a third, nearer partner
+STARVING_BASELINE_FRACTION = 0.4  # ... at least this share of the partners' baseline away
 
 
 def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baseline_ratio: float) -> list[int]:
@@ -196,8 +198,17 @@ def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baselin
     P = np.array([m.points[p].p_slam for p in pids])
     depth_slam = float(np.median(P @ kf.T_cam_slam[2, :3] + kf.T_cam_slam[2, 3]))  # along the optical axis
     c = kf.center
-    far = [i for i in reversed(earlier) if np.linalg.norm(m.keyframes[i].center - c) >= min_baseline_ratio * depth_slam]
-    return far[:2] or earlier[-1:]
+    dist = {i: float(np.linalg.norm(m.keyframes[i].center - c)) for i in earlier}
+    far = [i for i in reversed(earlier) if dist[i] >= min_baseline_ratio * depth_slam]
+    parts = far[:2] or earlier[-1:]
+    if len(pids) < STARVING_TRACKED:
+        # the tracker is running out of points (a turn: keyframes every 10 deg, the partners far
+        # enough away are the ones whose view is leaving); add the newest keyframe at a
+        # STARVING_BASELINE_FRACTION of that baseline, whose view still overlaps
+        near = [i for i in reversed(earlier) if i not in parts
+                and dist[i] >= STARVING_BASELINE_FRACTION * min_baseline_ratio * depth_slam]
+        parts += near[:1]
+    return parts
 
 
 FUSE_RADIUS_PX = 3.0  # a neighbour's point must project this close to a feature (ORB-SLAM Fuse, th=3)
@@ -285,7 +296,7 @@ def cut_patches(aligner: PatchAligner, m: SlamMap, kf: Keyframe) -> int:
     patches, ok = aligner.cut(kf.levels, kf.uv_px[f], octave)
     for j in np.flatnonzero(ok).tolist():
         mp = m.points[int(kf.point_ids[f[j]])]
-        mp.patch, mp.patch_octave = patches[j], int(octave[j])
+        mp.patch, mp.patch_octave = patches[j].copy(), int(octave[j])  # a copy: a row would keep the batch alive
     return int(ok.sum())
 
 
@@ -451,8 +462,8 @@ class LocalMapper:
                     if kf.point_ids[i] < 0 and other.point_ids[j] < 0:
                         pid = m.add_point(p[k], kf.desc[i], {kf.kf_id: i, other.kf_id: j})
                         other.uv_px[j] = uv_b[k]
-                        if octave[k] >= 0:
-                            m.points[pid].patch, m.points[pid].patch_octave = patches[k], int(octave[k])
+                        if octave[k] >= 0:  # a copy: a row would keep the batch alive
+                            m.points[pid].patch, m.points[pid].patch_octave = patches[k].copy(), int(octave[k])
 
     def _partner_observations(self, kf: Keyframe, other: Keyframe, ia: np.ndarray,
                               ib: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -371,24 +371,31 @@ def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays()
 
 
 def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
-    """Keyframes every 10 m, then three 1 m apart (a turn); the scene is 100 m below. With a 5 %
+    """Keyframes every 10 m, then three ~1 m apart (a turn); the scene is 100 m below. With a 5 %
     baseline ratio the newest keyframe pairs with the 2 newest keyframes >= 5 m away, not with its
-    close neighbours; with 0 with its 2 predecessors; with nothing far enough, its predecessor."""
+    close neighbours; with 0 with its 2 predecessors; with nothing far enough, its predecessor.
+    A keyframe that tracks few points (the tracker starving in a turn) also gets the newest
+    keyframe at least 0.4 of that baseline away (2 m here), whose view still overlaps its own."""
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import triangulation_partners
+    from slam.mapping import STARVING_TRACKED, triangulation_partners
 
-    m = SlamMap()
-    n_pts = 12
-    for x_m in [0.0, 10.0, 20.0, 30.0, 31.0, 32.0, 33.0]:  # looking down (+z)
-        m.add_keyframe(Keyframe(m.new_kf_id(), x_m, int(x_m), make_T(np.eye(3), -np.array([x_m, 0.0, 0.0])),
-                                np.zeros((n_pts, 2)), np.zeros((n_pts, 32), np.uint8), np.full(n_pts, -1, np.int64)))
-    ids = sorted(m.keyframes)
-    for i in range(n_pts):  # the newest keyframe's tracked points, 100 m below it
-        m.add_point(np.array([33.0 + 5.0 * (i % 4), 5.0 * (i // 4), 100.0]), np.zeros(32), {ids[-1]: i})
-    kf = m.keyframes[ids[-1]]
+    def turn(n_pts: int):
+        m = SlamMap()
+        for x_m in [0.0, 10.0, 20.0, 30.0, 30.8, 32.0, 33.0]:  # looking down (+z)
+            m.add_keyframe(Keyframe(m.new_kf_id(), x_m, int(x_m), make_T(np.eye(3), -np.array([x_m, 0.0, 0.0])),
+                                    np.zeros((n_pts, 2)), np.zeros((n_pts, 32), np.uint8), np.full(n_pts, -1, np.int64)))
+        ids = sorted(m.keyframes)
+        for i in range(n_pts):  # the newest keyframe's tracked points, 100 m below it
+            m.add_point(np.array([33.0 + 0.5 * (i % 20), 0.5 * (i // 20), 100.0]), np.zeros(32), {ids[-1]: i})
+        return m, ids, m.keyframes[ids[-1]]
+
+    m, ids, kf = turn(STARVING_TRACKED)
     assert triangulation_partners(m, kf, ids, 0.05) == [ids[2], ids[1]]  # 13 m and 23 m away, newest first
     assert triangulation_partners(m, kf, ids, 0.0) == ids[-3:-1]
     assert triangulation_partners(m, kf, ids, 0.4) == [ids[-2]]  # nothing 40 m away: the previous keyframe
+    m, ids, kf = turn(STARVING_TRACKED - 1)
+    assert triangulation_partners(m, kf, ids, 0.05) == [ids[2], ids[1], ids[4]]  # + the one 2.2 m away, not 1 m
+    assert triangulation_partners(m, kf, ids, 0.0) == ids[-3:-1]  # the predecessors already overlap
 
 
 # --- sequences saved for replay elsewhere (slam.bench --export / --sequence) --------------------
