@@ -397,9 +397,13 @@ class LocalMapper:
         c = self.config
         with m.lock:
             m.add_keyframe(kf)
+            tracked = []
             for i, pid in enumerate(kf.point_ids.tolist()):  # freshest appearance for matching
                 if pid >= 0:
                     m.points[pid].desc = kf.desc[i].copy()  # a row view would keep kf.desc alive
+                    tracked.append((i, pid))
+            if self.aligner is not None:  # the tracker's matches observed where their patches align
+                align_observations(self.aligner, m, kf, tracked)
             ids = self._neighbourhood(kf, m.kf_ids()) if self._loaded_upto >= 0 else m.kf_ids()
         self._finish_ba(wait=False)
         self._triangulate(kf, ids)

@@ -5,7 +5,7 @@ Why: ORB keypoints are FAST corners at integer pixels of their pyramid level, de
 every frame. Measured on the simulator (`nominal`, true depth under each keypoint projected into a
 later frame with the true pose), the matched keypoint lies 0.84 px (median; 0.65 px at level 0,
 1.16 px at level 4) from where the first keypoint's scene point is; aligning the first keypoint's
-11x11 patch instead puts it 0.16 px off after 3 frames and 0.26 px after 30 (docs/BENCHMARKS.md,
+11x11 patch instead puts it 0.17 px off after 3 frames and 0.27 px after 30 (docs/BENCHMARKS.md,
 "Sub-pixel observations"). Every observation of a point is then of the same scene point, which is
 what triangulation, bundle adjustment and the pose need (SVO's feature alignment does the same).
 
@@ -13,14 +13,15 @@ Written here rather than with cv2.calcOpticalFlowPyrLK: OpenCV's tracker needs t
 image at the target's size, and a map point keeps only a 13x13 patch of it (169 bytes) for as
 long as the point lives. The solver is the inverse-compositional one of Baker & Matthews, "Lucas-
 Kanade 20 years on" (IJCV 2004), §3.2, for a pure translation warp, with the patch's mean and
-contrast normalised (zero-mean, gain to the template's), vectorised over all patches of a level.
+contrast normalised (zero-mean, gain to the template's), vectorised over all patches of a frame.
 
 Where (``slam.patch_alignment``): a map point's patch is cut from the keyframe it is triangulated
 in (slam.mapping); the other keyframe of its triangulation, every later keyframe that tracks it
-(slam.tracking, only when a frame becomes a keyframe: ~3 ms, not on every frame) and every keyframe
-fusing joins it to observe it where the patch aligns. Frames between keyframes are tracked on the
-detected corners: their poses are output, not mapped, and aligning there cost 5-8 ms a frame
-without a measurable gain (docs/BENCHMARKS.md).
+and every keyframe fusing joins it to observe it where the patch aligns, all in local mapping (a
+keyframe carries its image levels there; the tracking thread only builds them, ~0.5 ms on a
+keyframe's frame). Frames between keyframes are tracked on the detected corners: their poses are
+output, not mapped, and aligning there cost 5-8 ms a frame without a measurable gain
+(docs/BENCHMARKS.md).
 
 Positions in and out are undistorted pixels (as ``slam.features.Features``); patches are cut from
 and aligned in the camera's own (distorted) image.
@@ -181,16 +182,17 @@ def _min_eig(p: np.ndarray) -> np.ndarray:
 
 
 def _align(dst: ImageLevels, stored: np.ndarray, octave: np.ndarray, xy0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse-compositional LK (Baker & Matthews 2004, Eq. 31-35 for W(x; p) = x + p) of the
-    stored patches, each in its level of ``dst``, from xy0 (level pixels)."""
+    """Inverse-compositional LK (Baker & Matthews 2004, §3.2, for the warp W(x; p) = x + p) of the
+    stored patches, each in its level of ``dst``, from xy0 (level pixels): the Hessian H from the
+    template's gradients once, then per iteration dp = H^-1 sum(grad T^T (I(x + p) - T(x))) and
+    p <- p - dp (composing with the inverse of a translation)."""
     T = stored[:, 1:-1, 1:-1]
     gx, gy = _gradients(stored)
     Tz = T - T.mean((1, 2), keepdims=True)
     t_norm = np.sqrt((Tz * Tz).sum((1, 2)))
-    a, b, c = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))  # Hessian (Eq. 33)
-    det = a * c - b * b
-    live = (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b) >= MIN_EIG
-    det = np.where(live, det, 1.0)
+    a, b, c = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))  # H = [[a, b], [b, c]]
+    live = _min_eig(stored) >= MIN_EIG
+    det = np.where(live, a * c - b * b, 1.0)
     xy = xy0.astype(np.float64).copy()
     step = np.full(len(xy), np.inf)
     half = PATCH_PX / 2 + 1
@@ -204,8 +206,8 @@ def _align(dst: ImageLevels, stored: np.ndarray, octave: np.ndarray, xy0: np.nda
         i_norm = np.sqrt((Iz * Iz).sum((1, 2)))
         r = Iz * (t_norm[j] / np.maximum(i_norm, 1e-6))[:, None, None] - Tz[j]  # gain-normalised residual
         bx, by = (gx[j] * r).sum((1, 2)), (gy[j] * r).sum((1, 2))
-        dx, dy = (c[j] * bx - b[j] * by) / det[j], (a[j] * by - b[j] * bx) / det[j]  # H^-1 b (Eq. 34)
-        xy[j] -= np.c_[dx, dy]  # inverse composition of a translation (Eq. 35)
+        dx, dy = (c[j] * bx - b[j] * by) / det[j], (a[j] * by - b[j] * bx) / det[j]  # H^-1 [bx, by]
+        xy[j] -= np.c_[dx, dy]  # inverse composition of a translation
         step[j] = np.hypot(dx, dy)
     ok = (step < CONVERGED_PX) & _inside(dst, xy, octave, half) & (np.hypot(*(xy - xy0).T) <= MAX_SHIFT_PX)
     j = np.flatnonzero(ok)

@@ -27,7 +27,6 @@ class PoseEstimate:
     inlier_pid: np.ndarray  # their map point ids
     inlier_p_slam: np.ndarray  # (N, 3) their positions in the SLAM frame, as the pose was solved with them
     local_map: LocalMap  # the map the pose was solved against
-    inlier_lm: np.ndarray  # (N,) their rows in local_map
 
 
 def solve_pnp(K: np.ndarray, p_slam: np.ndarray, uv_px: np.ndarray, T_guess: np.ndarray | None,
@@ -211,13 +210,9 @@ class Tracker:
         if self._need_keyframe(est.T_cam_slam, n):
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
-            uv = feats.uv_px.copy()
-            levels = self._levels_of(frame, feats)
-            lm = est.local_map
-            if levels is not None and lm.patches is not None:  # observed where their points' patches align
-                uv[est.inlier_feat] = self.aligner.align(levels, lm.patches[est.inlier_lm], lm.patch_octave[est.inlier_lm],
-                                                         uv[est.inlier_feat])[0]
-            kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity, uv, levels)
+            # its image goes with it: local mapping moves the tracked points' observations to where
+            # their patches align (slam.mapping.align_observations), off this thread
+            kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity, self._levels_of(frame, feats))
             self._keyed(est.T_cam_slam, n)
         return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)
 
@@ -244,13 +239,12 @@ class Tracker:
         self.shared.mapping_busy = True
 
     def _keyframe(self, frame: Frame, T_cam_slam: np.ndarray, feats: Features, point_ids: np.ndarray,
-                  gravity: Gravity | None, uv_px: np.ndarray | None = None, levels: ImageLevels | None = None) -> Keyframe:
-        """uv_px: the features' observed positions (default: as detected); levels: the frame's image
-        for local mapping's patch alignment."""
+                  gravity: Gravity | None, levels: ImageLevels | None = None) -> Keyframe:
+        """levels: the frame's image, for local mapping's patch alignment (slam.patches)."""
         use = gravity is not None and self.map.gravity_aligned
         g, sigma = (gravity.g_cam, gravity.sigma_rad) if use else (None, None)
-        uv = feats.uv_px if uv_px is None else uv_px
-        return Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, T_cam_slam, uv, feats.desc, point_ids, g, sigma, levels)
+        return Keyframe(self.map.new_kf_id(), frame.t_s, frame.seq, T_cam_slam, feats.uv_px.copy(), feats.desc, point_ids,
+                        g, sigma, levels)
 
     def _track_local_map(self, feats: Features, T_pred: np.ndarray) -> PoseEstimate | None:
         lm = self.shared.local_map
@@ -290,7 +284,7 @@ class Tracker:
             if sol2 is not None and sol2[1].sum() >= inl.sum():
                 T, inl = sol2
                 pts, pairs = pts2, pairs2
-        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm, pts[inl])
+        return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm)
 
     def _levels_of(self, frame: Frame, feats: Features) -> ImageLevels | None:
         """The frame's image levels for patch alignment (slam.patches); None without an aligner."""

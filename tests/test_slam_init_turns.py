@@ -123,8 +123,7 @@ def test_keyframe_when_inliers_fall_below_the_ratio_of_the_most_tracked_since_th
 
     def new_keyframe(x_m: float, n_inliers: int) -> bool:
         lm = LocalMap(np.arange(n_inliers), np.zeros((n_inliers, 3)), np.zeros((n_inliers, 32), np.uint8), 0)
-        est = PoseEstimate(aerial_T_cam_world(x_m), np.arange(n_inliers), np.arange(n_inliers), np.zeros((n_inliers, 3)), lm,
-                           np.arange(n_inliers))
+        est = PoseEstimate(aerial_T_cam_world(x_m), np.arange(n_inliers), np.arange(n_inliers), np.zeros((n_inliers, 3)), lm)
         frame = Frame(np.zeros((H_PX, W_PX), np.uint8), x_m / 7.0, int(x_m * 10))
         return t._accept(frame, feats, est, TrackingState.OK).new_keyframe is not None
 
