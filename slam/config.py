@@ -20,7 +20,7 @@ class SlamConfig(BaseModel):
     use_attitude_prior: bool = Field(False, description="use the autopilot's gravity direction (AttitudePrior.gravity_cam): gravity-aligned initial map, gravity factors in every BA. Experimental: levels the map, but measured worse ATE on nominal (scale drift), docs/BENCHMARKS.md")
     attitude_prior_sigma_deg: float = Field(1.0, gt=0, le=30, description="1-sigma of the autopilot's roll/pitch for the gravity factors when the prior carries none (AHRS: ~0.5-1 deg)")
     # tracking
-    patch_alignment: bool = Field(True, description="a keyframe observes each map point where the image patch the point was first seen with aligns (Lucas-Kanade, slam/patches.py), not at the re-detected ORB corner: 0.16-0.26 px from the true position instead of 0.84-0.98 px in the simulator; triangulation, fusing and bundle adjustment use these (docs/BENCHMARKS.md)")
+    patch_alignment: bool = Field(True, description="a keyframe observes each map point where the image patch the point was first seen with aligns (Lucas-Kanade, slam/patches.py), not at the re-detected ORB corner: 0.17-0.27 px from the true position instead of 0.84-0.99 px in the simulator; triangulation, fusing and bundle adjustment use these (docs/BENCHMARKS.md)")
     min_inliers: int = Field(25, ge=6, le=500, description="PnP inliers needed to call a frame tracked")
     search_radius_px: float = Field(12.0, gt=0, le=200, description="projection search radius around the motion-model prediction (px); retried at 3x")
     refine_radius_px: float = Field(4.0, gt=0, le=50, description="search radius of the second matching pass after the first pose (px)")

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam.geometry import camera_center
-from slam.patches import STORED_PX, ImageLevels
+from slam.patches import ImageLevels
 
 # What a forgotten keyframe keeps instead of its features: shared read-only empty arrays (a slice
 # like ``desc[:0]`` would be a view that keeps the whole feature buffer alive).
@@ -55,7 +55,7 @@ class MapPoint:
     desc: np.ndarray
     obs: dict[int, int] = field(default_factory=dict)  # kf_id -> feature index
     first_kf: int = 0
-    patch: np.ndarray | None = None  # (STORED_PX, STORED_PX) uint8 reference patch (slam.patches), None: none
+    patch: np.ndarray | None = None  # (slam.patches.STORED_PX,)*2 uint8 reference patch, None: none
     patch_octave: int = -1  # the pyramid level it was cut at
 
 
@@ -67,8 +67,6 @@ class LocalMap:
     p_slam: np.ndarray
     desc: np.ndarray
     version: int
-    patches: np.ndarray | None = None  # (N, STORED_PX, STORED_PX) uint8 reference patches (slam.patches)
-    patch_octave: np.ndarray | None = None  # (N,) their pyramid levels, -1 where a point has none
 
 
 @dataclass(frozen=True)
@@ -205,11 +203,6 @@ class SlamMap:
         pids = np.array(sorted(i for i in ids if i in self.points), dtype=np.int64)
         if len(pids) == 0:
             return LocalMap(pids, np.zeros((0, 3)), np.zeros((0, 32), np.uint8), version)
-        pts = [self.points[i] for i in pids.tolist()]
-        P = np.array([p.p_slam for p in pts])
-        D = np.array([p.desc for p in pts])
-        octave = np.array([p.patch_octave if p.patch is not None else -1 for p in pts], np.int8)
-        patches = np.zeros((len(pts), STORED_PX, STORED_PX), np.uint8)
-        for j in np.flatnonzero(octave >= 0).tolist():
-            patches[j] = pts[j].patch
-        return LocalMap(pids, P, D, version, patches, octave)
+        P = np.array([self.points[i].p_slam for i in pids.tolist()])
+        D = np.array([self.points[i].desc for i in pids.tolist()])
+        return LocalMap(pids, P, D, version)

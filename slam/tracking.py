@@ -120,7 +120,7 @@ class Tracker:
     config: SlamConfig
     extract: Callable[[np.ndarray], Features]
     map: SlamMap = field(default_factory=SlamMap)
-    aligner: PatchAligner | None = None  # sub-pixel observations from the points' reference patches (slam.patches)
+    aligner: PatchAligner | None = None  # builds a keyframe's image levels for local mapping's patch alignment (slam.patches)
     shared: Shared = field(default_factory=Shared)
     state: TrackingState = TrackingState.INITIALIZING
     T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
