@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from slam.features import to_gray
 from slam.types import CameraModel
 
 PATCH_PX = 11  # aligned window (pixels of the keypoint's pyramid level)
@@ -62,8 +63,10 @@ class ImageLevels:
         return len(self.x0)
 
 
-def image_levels(gray: np.ndarray, octave: np.ndarray) -> ImageLevels:
-    """Levels up to the highest octave any feature was detected at."""
+def image_levels(image: np.ndarray, octave: np.ndarray) -> ImageLevels:
+    """A frame's image (grey or BGR) at the levels up to the highest octave any of its features
+    was detected at."""
+    gray = to_gray(image)
     top = min(int(octave.max()) if len(octave) else 0, N_LEVELS - 1)
     h, w = gray.shape
     lv = [gray] + [cv2.resize(gray, (max(1, round(w / SCALE_FACTOR ** o)), max(1, round(h / SCALE_FACTOR ** o))),
@@ -125,10 +128,6 @@ class PatchAligner:
         if not cam.is_distorted or len(uv_px) == 0:
             return uv_px
         return cv2.undistortPoints(uv_px.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2)
-
-    def levels(self, image: np.ndarray, octave: np.ndarray) -> ImageLevels:
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        return image_levels(gray, octave)
 
     def cut(self, src: ImageLevels, uv_px: np.ndarray, octave: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Reference patches (N, STORED_PX, STORED_PX) uint8 at each feature's own level, centred on

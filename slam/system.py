@@ -45,13 +45,12 @@ class SlamSystem:
         extract = make_extractor(camera, self.config)
         aligner = PatchAligner(camera) if self.config.patch_alignment else None
         if initial_map is None:
-            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, aligner=aligner)
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract)
             self.map_id, self.reset_counter = new_map_id(), 0
         else:
             if not initial_map.slam_map.keyframes:
                 raise MapFileError(initial_map.path, "the map has no keyframes")
-            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, map=initial_map.slam_map,
-                                   aligner=aligner)
+            self.tracker = Tracker(K, camera.width_px, camera.height_px, self.config, extract, map=initial_map.slam_map)
             self.tracker.resume(reloc_timeout_s)
             self.map_id, self.reset_counter = initial_map.header.map_id, initial_map.header.reset_counter
         self._map_ids = {self.reset_counter: self.map_id}  # reset_counter -> map_id, for MapUpdates

@@ -16,7 +16,7 @@ from slam.features import Features
 from slam.geometry import R_slam_cam_levelled, T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
 from slam.map import Keyframe, LocalMap, SlamMap
 from slam.matching import TH_LOW, match_bf, match_by_projection
-from slam.patches import ImageLevels, PatchAligner
+from slam.patches import ImageLevels, image_levels
 from slam.types import Frame, TrackingState
 
 
@@ -120,7 +120,6 @@ class Tracker:
     config: SlamConfig
     extract: Callable[[np.ndarray], Features]
     map: SlamMap = field(default_factory=SlamMap)
-    aligner: PatchAligner | None = None  # builds a keyframe's image levels for local mapping's patch alignment (slam.patches)
     shared: Shared = field(default_factory=Shared)
     state: TrackingState = TrackingState.INITIALIZING
     T_last: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -287,8 +286,9 @@ class Tracker:
         return PoseEstimate(T, pairs[inl, 1], lm.point_ids[pts[inl]], lm.p_slam[pts[inl]], lm)
 
     def _levels_of(self, frame: Frame, feats: Features) -> ImageLevels | None:
-        """The frame's image levels for patch alignment (slam.patches); None without an aligner."""
-        return None if self.aligner is None else self.aligner.levels(frame.image, feats.octave)
+        """The frame's image levels for local mapping's patch alignment (slam.patches); None
+        without ``slam.patch_alignment``."""
+        return image_levels(frame.image, feats.octave) if self.config.patch_alignment else None
 
     def _apply_correction(self) -> None:
         gen, S = self.shared.correction

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.patches import MAX_SHIFT_PX, PatchAligner
+from slam.patches import MAX_SHIFT_PX, PatchAligner, image_levels
 from slam.types import CameraModel
 
 W_PX, H_PX = 640, 480
@@ -36,11 +36,11 @@ def test_patches_align_to_the_true_subpixel_position_despite_exposure_and_noise(
     b = _shifted(a, shift, gain=0.7, offset=25.0, seed=2)
     uv_a = rng.uniform(60, [W_PX - 60, H_PX - 60], (200, 2))
     oct_ = np.full(len(uv_a), octave)
-    patches, cut_ok = al.cut(al.levels(a, oct_), uv_a, oct_)
+    patches, cut_ok = al.cut(image_levels(a, oct_), uv_a, oct_)
     assert cut_ok.mean() > 0.95
     truth = uv_a + shift
     start = truth + rng.uniform(-1.0, 1.0, truth.shape) * 1.2 ** octave  # a re-detected corner, ~1 level pixel off
-    uv_b, ok = al.align(al.levels(b, oct_), patches, np.where(cut_ok, oct_, -1), start)
+    uv_b, ok = al.align(image_levels(b, oct_), patches, np.where(cut_ok, oct_, -1), start)
     err = np.linalg.norm(uv_b - truth, axis=1)
     assert ok.mean() > 0.9
     # cv2.remap interpolates at 1/32 px steps: a noise-free shift comes out ~0.05 px off (a re-detected
@@ -55,12 +55,12 @@ def test_a_patch_that_is_not_there_is_refused_and_the_detection_kept():
     a, other = _texture(0), _texture(5)
     uv = np.random.default_rng(3).uniform(60, [W_PX - 60, H_PX - 60], (100, 2))
     oct_ = np.zeros(len(uv), int)
-    patches, cut_ok = al.cut(al.levels(a, oct_), uv, oct_)
-    uv_b, ok = al.align(al.levels(other, oct_), patches, oct_, uv)  # another scene: nothing matches
+    patches, cut_ok = al.cut(image_levels(a, oct_), uv, oct_)
+    uv_b, ok = al.align(image_levels(other, oct_), patches, oct_, uv)  # another scene: nothing matches
     assert ok.mean() < 0.05
     assert np.array_equal(uv_b[~ok], uv[~ok])
     far = uv + np.array([2.0 * MAX_SHIFT_PX + 2, 0.0])  # the right scene, but the start beyond reach
-    uv_c, ok_c = al.align(al.levels(a, oct_), patches, oct_, far)
+    uv_c, ok_c = al.align(image_levels(a, oct_), patches, oct_, far)
     assert not np.any(ok_c & (np.linalg.norm(uv_c - uv, axis=1) < 0.5))
 
 
@@ -70,10 +70,10 @@ def test_flat_and_edge_patches_are_not_cut_for_alignment():
     img[:, 320:] = 180  # a vertical edge: position along it is undetermined (aperture problem)
     uv = np.array([[100.0, 200.0], [320.0, 200.0]])
     oct_ = np.zeros(2, int)
-    _, ok = al.cut(al.levels(img, oct_), uv, oct_)
+    _, ok = al.cut(image_levels(img, oct_), uv, oct_)
     assert not ok.any()
     near_border = np.array([[2.0, 2.0]])
-    _, ok = al.cut(al.levels(_texture(0), oct_[:1]), near_border, oct_[:1])
+    _, ok = al.cut(image_levels(_texture(0), oct_[:1]), near_border, oct_[:1])
     assert not ok.any()
 
 
@@ -90,8 +90,8 @@ def test_distorted_camera_positions_stay_undistorted_pixels():
     d_a = rng.uniform(80, [W_PX - 80, H_PX - 80], (150, 2))  # distorted pixels in a
     undist = lambda d: cv2.undistortPoints(d.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
     oct_ = np.zeros(len(d_a), int)
-    patches, cut_ok = al.cut(al.levels(a, oct_), undist(d_a), oct_)
+    patches, cut_ok = al.cut(image_levels(a, oct_), undist(d_a), oct_)
     truth = undist(d_a + shift)
-    uv, ok = al.align(al.levels(b, oct_), patches, np.where(cut_ok, 0, -1), undist(d_a + shift + rng.uniform(-0.8, 0.8, d_a.shape)))
+    uv, ok = al.align(image_levels(b, oct_), patches, np.where(cut_ok, 0, -1), undist(d_a + shift + rng.uniform(-0.8, 0.8, d_a.shape)))
     assert ok.mean() > 0.9
     assert np.median(np.linalg.norm(uv[ok] - truth[ok], axis=1)) < 0.08
