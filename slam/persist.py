@@ -11,7 +11,11 @@ File layout: an uncompressed numpy ``.npz`` (zip of ``.npy`` arrays, no pickles)
   relocalise and to keep mapping: ``feat_offsets`` (K+1), ``feat_uv_px`` (F,2), ``feat_desc`` (F,32)
   uint8, ``feat_point_id`` (F,) (-1: no map point);
 * map points: ``pt_id``, ``pt_p_slam`` (P,3), ``pt_desc`` (P,32), ``pt_first_kf``, and observations
-  ``obs_offsets`` (P+1), ``obs_kf_id``, ``obs_feat``.
+  ``obs_offsets`` (P+1), ``obs_kf_id``, ``obs_feat``; their reference patches (slam.patches), so a
+  loaded point's new observations are aligned to sub-pixel from the first keyframe on:
+  ``pt_patch`` (P,13,13) uint8 and ``pt_patch_octave`` (P,) (its pyramid level; -1: no patch, the
+  rows are zeros). The two are optional: a file without them (written before they existed) loads
+  with no patches, and a build that does not know them reads the file and ignores them.
 
 ``content_sha256`` covers the header's other fields and every array (name, dtype, shape, bytes), so
 a truncated or altered file is refused. Writes go to a temporary file in the same folder, are
@@ -37,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.map import Keyframe, MapPoint, SlamMap
+from slam.patches import N_LEVELS, STORED_PX
 from slam.types import CameraModel
 
 FORMAT = "terraslam-slam-map"
@@ -133,7 +138,8 @@ def snapshot_map(m: SlamMap) -> MapSnapshot:
         pts = [m.points[p] for p in sorted(m.points)]
         kf_rows = [(kf.kf_id, kf.t_s, kf.seq, kf.T_cam_slam.copy(), kf.uv_px.copy(), kf.desc.copy(), kf.point_ids.copy())
                    for kf in kfs]
-        pt_rows = [(p.point_id, p.p_slam.copy(), p.desc.copy(), p.first_kf, list(p.obs.items())) for p in pts]
+        pt_rows = [(p.point_id, p.p_slam.copy(), p.desc.copy(), p.first_kf, list(p.obs.items()),
+                    None if p.patch is None else p.patch.copy(), p.patch_octave) for p in pts]
         next_kf, next_pt = m._next_kf, m._next_pt
     return MapSnapshot(_pack(kf_rows, pt_rows), int(next_kf), int(next_pt))
 
@@ -159,6 +165,9 @@ def _pack(kf_rows: list, pt_rows: list) -> dict[str, np.ndarray]:
         "obs_offsets": np.concatenate([[0], np.cumsum(n_obs)]).astype(np.int64),
         "obs_kf_id": np.array([k for o in obs for k, _ in o], np.int64),
         "obs_feat": np.array([i for o in obs for _, i in o], np.int64),
+        "pt_patch": np.array([np.zeros((STORED_PX, STORED_PX), np.uint8) if r[5] is None else r[5] for r in pt_rows],
+                             np.uint8).reshape(-1, STORED_PX, STORED_PX),
+        "pt_patch_octave": np.array([-1 if r[5] is None else r[6] for r in pt_rows], np.int64),
     }
 
 
@@ -214,6 +223,7 @@ _ARRAYS = {  # name: (dtype kind, trailing shape)
     "feat_point_id": ("i", ()), "pt_id": ("i", ()), "pt_p_slam": ("f", (3,)), "pt_desc": ("u", (DESC_BYTES,)),
     "pt_first_kf": ("i", ()), "obs_offsets": ("i", ()), "obs_kf_id": ("i", ()), "obs_feat": ("i", ()),
 }
+_OPTIONAL_ARRAYS = {"pt_patch": ("u", (STORED_PX, STORED_PX)), "pt_patch_octave": ("i", ())}  # both or neither
 
 
 def _read_npz(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
@@ -253,7 +263,10 @@ def _check_header(path: Path, header: dict, camera: CameraModel) -> None:
 
 
 def _check_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    for name, (kind, tail) in _ARRAYS.items():
+    optional = [name for name in _OPTIONAL_ARRAYS if name in arrays]
+    if optional and len(optional) != len(_OPTIONAL_ARRAYS):
+        raise MapFileError(path, f"array {optional[0]!r} without {sorted(set(_OPTIONAL_ARRAYS) - set(optional))}")
+    for name, (kind, tail) in {**_ARRAYS, **{k: _OPTIONAL_ARRAYS[k] for k in optional}}.items():
         a = arrays.get(name)
         if a is None:
             raise MapFileError(path, f"array {name!r} is missing")
@@ -266,11 +279,14 @@ def _check_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
            or len(arrays["feat_desc"]) != fo[-1] or len(arrays["feat_point_id"]) != fo[-1]
            or len(arrays["pt_p_slam"]) != P or len(arrays["pt_desc"]) != P or len(arrays["pt_first_kf"]) != P
            or len(oo) != P + 1 or oo[0] != 0 or np.any(np.diff(oo) < 0) or oo[-1] != len(arrays["obs_kf_id"])
-           or len(arrays["obs_feat"]) != oo[-1])
+           or len(arrays["obs_feat"]) != oo[-1]
+           or any(len(arrays[name]) != P for name in optional))
     if bad:
         raise MapFileError(path, "array sizes are inconsistent")
     if not (np.isfinite(arrays["kf_T_cam_slam"]).all() and np.isfinite(arrays["pt_p_slam"]).all()):
         raise MapFileError(path, "non-finite poses or point positions")
+    if optional and not np.all((arrays["pt_patch_octave"] >= -1) & (arrays["pt_patch_octave"] < N_LEVELS)):
+        raise MapFileError(path, f"a point's patch level is outside -1..{N_LEVELS - 1}")
 
 
 def read_map_header(path: Path | str) -> MapHeader:
@@ -323,6 +339,7 @@ def load_map_file(path: Path | str, camera: CameraModel) -> LoadedMap:
 def _unpack(a: dict[str, np.ndarray], next_kf_id: int, next_point_id: int) -> SlamMap:
     m = SlamMap()
     fo, oo = a["feat_offsets"], a["obs_offsets"]
+    octave = a.get("pt_patch_octave", np.full(len(a["pt_id"]), -1))
     for j, kf_id in enumerate(a["kf_id"].tolist()):
         s, e = int(fo[j]), int(fo[j + 1])
         m.keyframes[kf_id] = Keyframe(kf_id, float(a["kf_t_s"][j]), int(a["kf_seq"][j]), a["kf_T_cam_slam"][j].copy(),
@@ -335,6 +352,8 @@ def _unpack(a: dict[str, np.ndarray], next_kf_id: int, next_point_id: int) -> Sl
             if kf_id not in m.keyframes or not 0 <= i < len(m.keyframes[kf_id].point_ids):
                 raise ValueError(f"point {pid} observed by keyframe {kf_id} feature {i}, which does not exist")
         m.points[pid] = MapPoint(pid, a["pt_p_slam"][j].copy(), a["pt_desc"][j].copy(), obs, int(a["pt_first_kf"][j]))
+        if octave[j] >= 0:
+            m.points[pid].patch, m.points[pid].patch_octave = a["pt_patch"][j].copy(), int(octave[j])
     for kf in m.keyframes.values():  # a feature whose point is gone carries no point
         if len(kf.point_ids):
             kf.point_ids[np.array([p >= 0 and p not in m.points for p in kf.point_ids.tolist()])] = -1

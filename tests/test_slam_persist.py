@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -63,6 +64,7 @@ class Saved:
     n_points: int
     T_slam_cam_ref: dict[int, np.ndarray]  # frame -> pose of the original run (same map, before and after the save)
     save_ms: float
+    patches: dict[int, tuple[np.ndarray, int]]  # point id -> reference patch and its level, as saved
 
     def m_per_unit(self) -> float:
         """Metres per SLAM unit of the original run (its track length against the truth's)."""
@@ -86,6 +88,8 @@ def saved_map(tmp_path_factory) -> Saved:
         t0 = time.perf_counter()
         info = s.save_map(path, attachments={"note": "test"})
         save_ms = (time.perf_counter() - t0) * 1e3
+        with s.mapper.map.lock:
+            patches = {pid: (mp.patch.copy(), mp.patch_octave) for pid, mp in s.mapper.map.points.items() if mp.patch is not None}
         map_id, rc = s.current_map_key()
         # the original process goes on flying in the same map: reference poses for the later frames
         for i in range(N_MAP, len(fl.images)):
@@ -94,7 +98,7 @@ def saved_map(tmp_path_factory) -> Saved:
                 ref[i] = p.T_slam_cam
     print(f"map: {info.n_keyframes} keyframes, {info.n_points} points, {info.n_bytes / 1e6:.2f} MB, "
           f"snapshot {info.snapshot_ms:.1f} ms under the lock, write {info.write_ms:.1f} ms, save_map {save_ms:.1f} ms")
-    return Saved(fl, path, map_id, rc, info.n_keyframes, info.n_points, ref, save_ms)
+    return Saved(fl, path, map_id, rc, info.n_keyframes, info.n_points, ref, save_ms, patches)
 
 
 def test_round_trip_keeps_the_map_and_its_identity(saved_map: Saved) -> None:
@@ -110,6 +114,11 @@ def test_round_trip_keeps_the_map_and_its_identity(saved_map: Saved) -> None:
             assert m.keyframes[kf_id].point_ids[i] == pid
     for kf in m.keyframes.values():
         assert len(kf.uv_px) == len(kf.desc) == len(kf.point_ids) and kf.desc.dtype == np.uint8
+    # every point's reference patch (slam.patches) comes back, so its new observations are aligned at once
+    assert len(saved_map.patches) > 0.8 * len(m.points)
+    assert {pid for pid, mp in m.points.items() if mp.patch is not None} == set(saved_map.patches)
+    for pid, (patch, octave) in saved_map.patches.items():
+        assert m.points[pid].patch_octave == octave and np.array_equal(m.points[pid].patch, patch)
     assert m.new_kf_id() > max(m.keyframes) and m._next_pt > max(m.points)
     # loading twice gives the same content
     again = load_map_file(saved_map.path, saved_map.flight.camera)
@@ -252,6 +261,44 @@ def _rewrite(src: Path, dst: Path, header_edit=None, array_edit=None) -> Path:
 
 def _bump_point(a):
     a["pt_p_slam"][0, 0] += 1e-3
+
+
+def _resign(src: Path, dst: Path, array_edit) -> Path:
+    """``src`` with its arrays edited and its content hash recomputed: a file as a writer made it."""
+    from slam.persist import _content_hash
+
+    def edit(a):
+        array_edit(a)
+        header = json.loads(a["header"].tobytes())
+        header.pop("content_sha256")
+        header["content_sha256"] = _content_hash(header, {k: v for k, v in a.items() if k != "header"})
+        a["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    with np.load(src) as z:
+        arrays = {k: z[k].copy() for k in z.files}
+    edit(arrays)
+    np.savez(dst, **arrays)
+    return dst
+
+
+def test_a_map_saved_without_patches_loads_without_them(saved_map: Saved, tmp_path: Path) -> None:
+    """Maps written before reference patches were saved (no pt_patch arrays) still load: their
+    points get a patch from the first new keyframe that observes them."""
+    old = _resign(saved_map.path, tmp_path / "old.npz", lambda a: (a.pop("pt_patch"), a.pop("pt_patch_octave")))
+    m = load_map_file(old, saved_map.flight.camera).slam_map
+    assert len(m.points) == saved_map.n_points and all(mp.patch is None and mp.patch_octave == -1 for mp in m.points.values())
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda a: a.pop("pt_patch_octave"), "'pt_patch' without ['pt_patch_octave']"),
+    (lambda a: a.update(pt_patch=a["pt_patch"][:-1]), "array sizes are inconsistent"),
+    (lambda a: a.update(pt_patch=a["pt_patch"][:, :11, :11]), "'pt_patch' has dtype uint8 shape"),
+    (lambda a: a["pt_patch_octave"].__setitem__(0, 8), "patch level is outside -1..7"),
+])
+def test_bad_patch_arrays_are_refused(saved_map: Saved, tmp_path: Path, edit, message: str) -> None:
+    bad = _resign(saved_map.path, tmp_path / "bad.npz", edit)
+    with pytest.raises(MapFileError, match=re.escape(message)) as e:
+        load_map_file(bad, saved_map.flight.camera)
+    assert str(bad) in str(e.value)
 
 
 @pytest.mark.parametrize("case, message", [
