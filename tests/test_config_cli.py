@@ -57,9 +57,9 @@ def test_bad_yaml_and_missing_file(tmp_path):
 
 
 def test_env_overrides(tmp_path):
-    cfg = load_config(write(tmp_path, {}), environ={"TERRASLAM_MAVLINK__CONNECT": "/dev/ttyTHS1", "TERRASLAM_SLAM__N_FEATURES": "1500", "HOME": "/x"})
+    cfg = load_config(write(tmp_path, {}), environ={"TERRASLAM_MAVLINK__CONNECT": "/dev/ttyTHS1", "TERRASLAM_SLAM__N_FEATURES": "1200", "HOME": "/x"})
     assert cfg.mavlink.connect == "/dev/ttyTHS1"
-    assert cfg.slam.n_features == 1500
+    assert cfg.slam.n_features == 1200
     with pytest.raises(ConfigError, match="environment"):
         load_config(write(tmp_path, {}), environ={"TERRASLAM_MAVLINK__RATE_HZ": "1000"})
 
