@@ -144,7 +144,7 @@ class PatchAligner:
         if len(k):
             p = _sample(src, xy[k], octave[k], STORED_PX)
             out[k] = np.clip(np.rint(p), 0, 255).astype(np.uint8)
-            ok[k] = _min_eig(out[k].astype(np.float32)) >= MIN_EIG
+            ok[k] = _min_eig(*_hessian(*_gradients(out[k].astype(np.float32)))) >= MIN_EIG
         return out, ok
 
     def align(self, dst: ImageLevels, patches: np.ndarray, octave: np.ndarray,
@@ -173,10 +173,14 @@ def _gradients(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (p[:, 1:-1, 2:] - p[:, 1:-1, :-2]) / 2, (p[:, 2:, 1:-1] - p[:, :-2, 1:-1]) / 2
 
 
-def _min_eig(p: np.ndarray) -> np.ndarray:
-    """Smallest eigenvalue of the 2x2 gradient matrix of each stored patch's aligned window."""
-    gx, gy = _gradients(p)
-    a, b, c = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))
+def _hessian(gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each patch's 2x2 gradient matrix H = [[a, b], [b, c]] (the Gauss-Newton Hessian of a
+    translation) from its gradients."""
+    return (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))
+
+
+def _min_eig(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue of each [[a, b], [b, c]]."""
     return (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
 
 
@@ -189,8 +193,8 @@ def _align(dst: ImageLevels, stored: np.ndarray, octave: np.ndarray, xy0: np.nda
     gx, gy = _gradients(stored)
     Tz = T - T.mean((1, 2), keepdims=True)
     t_norm = np.sqrt((Tz * Tz).sum((1, 2)))
-    a, b, c = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))  # H = [[a, b], [b, c]]
-    live = _min_eig(stored) >= MIN_EIG
+    a, b, c = _hessian(gx, gy)
+    live = _min_eig(a, b, c) >= MIN_EIG
     det = np.where(live, a * c - b * b, 1.0)
     xy = xy0.astype(np.float64).copy()
     step = np.full(len(xy), np.inf)
