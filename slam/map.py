@@ -58,6 +58,11 @@ class MapPoint:
     patch: np.ndarray | None = None  # (slam.patches.STORED_PX,)*2 uint8 reference patch, None: none
     patch_octave: int = -1  # the pyramid level it was cut at
 
+    def set_patch(self, patch: np.ndarray, octave: int) -> None:
+        """Keep ``patch`` (a row of a batch of cut patches) as this point's reference patch, cut at
+        pyramid level ``octave``. Stored as a copy: a row would keep the whole batch alive."""
+        self.patch, self.patch_octave = patch.copy(), int(octave)
+
 
 @dataclass(frozen=True)
 class LocalMap:

@@ -295,8 +295,7 @@ def cut_patches(aligner: PatchAligner, m: SlamMap, kf: Keyframe) -> int:
     octave = kf.levels.octave[f]
     patches, ok = aligner.cut(kf.levels, kf.uv_px[f], octave)
     for j in np.flatnonzero(ok).tolist():
-        mp = m.points[int(kf.point_ids[f[j]])]
-        mp.patch, mp.patch_octave = patches[j].copy(), int(octave[j])  # a copy: a row would keep the batch alive
+        m.points[int(kf.point_ids[f[j]])].set_patch(patches[j], octave[j])
     return int(ok.sum())
 
 
@@ -466,8 +465,8 @@ class LocalMapper:
                     if kf.point_ids[i] < 0 and other.point_ids[j] < 0:
                         pid = m.add_point(p[k], kf.desc[i], {kf.kf_id: i, other.kf_id: j})
                         other.uv_px[j] = uv_b[k]
-                        if octave[k] >= 0:  # a copy: a row would keep the batch alive
-                            m.points[pid].patch, m.points[pid].patch_octave = patches[k].copy(), int(octave[k])
+                        if octave[k] >= 0:
+                            m.points[pid].set_patch(patches[k], octave[k])
 
     def _partner_observations(self, kf: Keyframe, other: Keyframe, ia: np.ndarray,
                               ib: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

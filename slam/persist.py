@@ -353,7 +353,7 @@ def _unpack(a: dict[str, np.ndarray], next_kf_id: int, next_point_id: int) -> Sl
                 raise ValueError(f"point {pid} observed by keyframe {kf_id} feature {i}, which does not exist")
         m.points[pid] = MapPoint(pid, a["pt_p_slam"][j].copy(), a["pt_desc"][j].copy(), obs, int(a["pt_first_kf"][j]))
         if octave[j] >= 0:
-            m.points[pid].patch, m.points[pid].patch_octave = a["pt_patch"][j].copy(), int(octave[j])
+            m.points[pid].set_patch(a["pt_patch"][j], octave[j])
     for kf in m.keyframes.values():  # a feature whose point is gone carries no point
         if len(kf.point_ids):
             kf.point_ids[np.array([p >= 0 and p not in m.points for p in kf.point_ids.tolist()])] = -1
