@@ -247,7 +247,9 @@ def test_restart_relocalises_anywhere_in_the_map_through_place_recognition(turn_
 
 
 # --- bad files -----------------------------------------------------------------------------------
-def _rewrite(src: Path, dst: Path, header_edit=None, array_edit=None) -> Path:
+def _rewrite(src: Path, dst: Path, header_edit=None, array_edit=None, resign: bool = False) -> Path:
+    """``src`` with its header and/or arrays edited; ``resign``: with its content hash recomputed,
+    a file as a writer made it."""
     with np.load(src) as z:
         arrays = {k: z[k].copy() for k in z.files}
     header = json.loads(arrays.pop("header").tobytes())
@@ -255,6 +257,11 @@ def _rewrite(src: Path, dst: Path, header_edit=None, array_edit=None) -> Path:
         header_edit(header)
     if array_edit:
         array_edit(arrays)
+    if resign:
+        from slam.persist import _content_hash
+
+        header.pop("content_sha256")
+        header["content_sha256"] = _content_hash(header, arrays)
     np.savez(dst, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
     return dst
 
@@ -263,27 +270,11 @@ def _bump_point(a):
     a["pt_p_slam"][0, 0] += 1e-3
 
 
-def _resign(src: Path, dst: Path, array_edit) -> Path:
-    """``src`` with its arrays edited and its content hash recomputed: a file as a writer made it."""
-    from slam.persist import _content_hash
-
-    def edit(a):
-        array_edit(a)
-        header = json.loads(a["header"].tobytes())
-        header.pop("content_sha256")
-        header["content_sha256"] = _content_hash(header, {k: v for k, v in a.items() if k != "header"})
-        a["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
-    with np.load(src) as z:
-        arrays = {k: z[k].copy() for k in z.files}
-    edit(arrays)
-    np.savez(dst, **arrays)
-    return dst
-
-
 def test_a_map_saved_without_patches_loads_without_them(saved_map: Saved, tmp_path: Path) -> None:
     """Maps written before reference patches were saved (no pt_patch arrays) still load: their
     points get a patch from the first new keyframe that observes them."""
-    old = _resign(saved_map.path, tmp_path / "old.npz", lambda a: (a.pop("pt_patch"), a.pop("pt_patch_octave")))
+    old = _rewrite(saved_map.path, tmp_path / "old.npz", array_edit=lambda a: (a.pop("pt_patch"), a.pop("pt_patch_octave")),
+                   resign=True)
     m = load_map_file(old, saved_map.flight.camera).slam_map
     assert len(m.points) == saved_map.n_points and all(mp.patch is None and mp.patch_octave == -1 for mp in m.points.values())
 
@@ -295,7 +286,7 @@ def test_a_map_saved_without_patches_loads_without_them(saved_map: Saved, tmp_pa
     (lambda a: a["pt_patch_octave"].__setitem__(0, 8), "patch level is outside -1..7"),
 ])
 def test_bad_patch_arrays_are_refused(saved_map: Saved, tmp_path: Path, edit, message: str) -> None:
-    bad = _resign(saved_map.path, tmp_path / "bad.npz", edit)
+    bad = _rewrite(saved_map.path, tmp_path / "bad.npz", array_edit=edit, resign=True)
     with pytest.raises(MapFileError, match=re.escape(message)) as e:
         load_map_file(bad, saved_map.flight.camera)
     assert str(bad) in str(e.value)
