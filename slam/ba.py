@@ -190,7 +190,8 @@ def _warm() -> bool:
     return True
 
 
-def ba_worker() -> ForkedWorker:
+def ba_worker(nice: int = 0) -> ForkedWorker:
     """The BA worker process shared by local mapping and loop closing: ``submit(bundle_adjust,
-    problem)``. If it dies the BA in flight fails (BrokenProcessPool) and mapping goes on."""
-    return ForkedWorker("bundle-adjustment", warm=_warm)
+    problem)``, at ``nice`` below this process's priority (``slam.ba_nice``). If it dies the BA in
+    flight fails (BrokenProcessPool) and mapping goes on."""
+    return ForkedWorker("bundle-adjustment", warm=_warm, nice=nice)

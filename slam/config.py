@@ -40,6 +40,7 @@ class SlamConfig(BaseModel):
     fuse_keyframes: int = Field(10, ge=0, le=200, description="after triangulating, a new keyframe's points are fused with those of this many most covisible keyframes: missed observations joined, duplicate points merged (ORB-SLAM SearchInNeighbors; slam.mapping.fuse_points); 0: off")
     local_map_keyframes: int = Field(20, ge=2, le=500, description="keyframes whose points form the tracker's local map")
     ba_iterations: int = Field(5, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
+    ba_nice: int = Field(10, ge=0, le=19, description="the BA worker process runs this much below the tracking's priority (Unix niceness; 0: the same): on 2 shared cores the tracking latency P99 fell 37.4 -> 35.1 ms in 6 of 6 free-running bench flights (docs/BENCHMARKS.md, \"Bundle adjustment at a lower priority\")")
     ba_fixed_keyframes: int = Field(10, ge=0, le=100, description="most fixed border keyframes (that see the window's points) in a local BA; 0: local_window/2, at least 2. More anchors hold the scale through turns")
     periodic_ba_every_keyframes: int = Field(5, ge=0, le=1000, description="every N keyframes the background BA covers periodic_ba_window keyframes instead of the local window (0: off)")
     periodic_ba_window: int = Field(30, ge=2, le=1000, description="keyframes optimised by the periodic larger BA (halved by PLM while the motion is inside the Eq. 4 reliable region)")

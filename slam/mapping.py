@@ -324,7 +324,7 @@ class LocalMapper:
         self._keep_loaded = keep_loaded  # ... and kept whole, outside the memory cap (a survey map: SlamSystem)
         self._retired_upto = -1  # keyframes with ids up to this one have left the active window
         self._n_retired = 0
-        self._ba = ba_worker()
+        self._ba = ba_worker(config.ba_nice)
         self._lm_version = 0
         self._correction_gen = 0
         self._loop_cooldown_until = 0

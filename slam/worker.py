@@ -10,11 +10,17 @@ Fork, not spawn/forkserver: those re-import the caller's ``__main__`` (which bre
 a ``__main__`` guard) and would re-send large state (the GIS model); a forked child inherits it.
 Forking while another thread is inside an OpenBLAS call can leave the child's BLAS thread pool
 stuck, hence ``OPENBLAS_NUM_THREADS=1`` in ``companion/__init__.py`` and the systemd unit.
+
+``nice``: the child lowers its own scheduling priority (``os.nice``) before anything else, so that
+where the cores are shared the kernel runs the tracking thread first (CFS weights: nice 10 gets
+~1/9 of a contended core against nice 0). Measured for the BA worker (docs/BENCHMARKS.md,
+"Bundle adjustment at a lower priority").
 """
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -25,19 +31,21 @@ log = logging.getLogger(__name__)
 
 class ForkedWorker:
     """A single-process pool, forked at construction with ``initializer(*initargs)``, then
-    ``warm()`` (e.g. an import the first job should not pay for); restarted by the first
-    ``submit`` after it died."""
+    ``warm()`` (e.g. an import the first job should not pay for), at ``nice`` more than this
+    process's niceness (0: the same priority); restarted by the first ``submit`` after it died."""
 
     def __init__(self, name: str, initializer: Callable[..., None] | None = None, initargs: tuple = (),
-                 warm: Callable[[], Any] = bool) -> None:
+                 warm: Callable[[], Any] = bool, nice: int = 0) -> None:
+        if not 0 <= nice <= 19:
+            raise ValueError(f"{name} worker: nice {nice} outside 0..19")
         self.name = name
-        self._initializer, self._initargs, self._warm = initializer, initargs, warm
+        self._initializer, self._initargs, self._warm, self._nice = initializer, initargs, warm, nice
         self._lock = threading.Lock()
         self._pool: ProcessPoolExecutor | None = self._start()
 
     def _start(self) -> ProcessPoolExecutor:
         pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"),
-                                   initializer=self._initializer, initargs=self._initargs)
+                                   initializer=_child_start, initargs=(self._nice, self._initializer, self._initargs))
         pool.submit(self._warm)  # the first submit forks the process: do it now, not at the first job
         return pool
 
@@ -71,3 +79,10 @@ class ForkedWorker:
             pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _child_start(nice: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    if nice:
+        os.nice(nice)  # raising one's own niceness needs no privilege
+    if initializer is not None:
+        initializer(*initargs)

@@ -204,6 +204,26 @@ def test_ba_worker_restarts_after_its_process_is_killed():
     assert not psutil.Process().children()
 
 
+def test_forked_worker_runs_below_the_callers_priority():
+    """The BA worker is niced (slam.ba_nice) so that on shared cores the tracking thread runs
+    first; a restarted worker keeps that priority, and a niceness outside 0..19 is refused."""
+    import os
+
+    from slam.worker import ForkedWorker
+
+    own = os.nice(0)
+    worker = ForkedWorker("nice-test", nice=min(5, 19 - own))
+    try:
+        assert worker.submit(os.nice, 0).result(timeout=30) == own + min(5, 19 - own)
+        worker.restart("test")
+        assert worker.submit(os.nice, 0).result(timeout=30) == own + min(5, 19 - own)
+    finally:
+        worker.close()
+    assert os.nice(0) == own  # the caller's own priority is untouched
+    with pytest.raises(ValueError, match="nice 20 outside 0..19"):
+        ForkedWorker("bad", nice=20)
+
+
 # --- place recognition --------------------------------------------------------------------------
 
 def test_place_index_finds_the_revisited_place():
