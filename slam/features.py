@@ -100,14 +100,14 @@ def make_orb_cpu(camera: CameraModel, n_features: int) -> Callable[[np.ndarray],
             kps = orb.detect(gray, None)
         if not kps:
             return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
-        uv = np.array([k.pt for k in kps])
+        # cv2.KeyPoint_convert: the (float32) positions in one C call, not a Python loop (~0.5 ms a frame)
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64)
         resp = np.array([k.response for k in kps])
         keep = keep_spread(uv, resp, gray.shape, n_features)
-        kps = [kps[i] for i in keep]
-        kps, desc = orb.compute(gray, kps)
+        kps, desc = orb.compute(gray, [kps[i] for i in keep])
         if desc is None or not kps:
             return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
-        uv = np.array([k.pt for k in kps])
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64)
         octave = np.array([k.octave for k in kps])
         return Features(undistort_px(camera, uv), desc, octave)
 
