@@ -228,11 +228,12 @@ def test_forked_worker_runs_below_the_callers_priority():
     from slam.worker import ForkedWorker
 
     own = os.nice(0)
-    worker = ForkedWorker("nice-test", nice=min(5, 19 - own))
+    want = min(own + 5, 19)  # niceness tops out at 19
+    worker = ForkedWorker("nice-test", nice=want - own)
     try:
-        assert worker.submit(os.nice, 0).result(timeout=30) == own + min(5, 19 - own)
+        assert worker.submit(os.nice, 0).result(timeout=30) == want
         worker.restart("test")
-        assert worker.submit(os.nice, 0).result(timeout=30) == own + min(5, 19 - own)
+        assert worker.submit(os.nice, 0).result(timeout=30) == want
     finally:
         worker.close()
     assert os.nice(0) == own  # the caller's own priority is untouched
