@@ -9,25 +9,12 @@ TH_LOW = 50  # Hamming threshold for a confident ORB match (ORB-SLAM's TH_LOW)
 TH_HIGH = 100
 
 
-_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], np.uint8)
-
-
-def _hamming_bytes(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance by a popcount table over bytes (numpy < 2 has no np.bitwise_count)."""
-    return _POPCOUNT8[np.bitwise_xor(a, b)].sum(-1, dtype=np.int32)
-
-
-def _hamming_words(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance by np.bitwise_count (numpy ≥ 2) over 64-bit words: a quarter of the
-    lookups; 1 500 points × 8 candidates 0.29 against 1.24 ms."""
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distance between broadcastable uint8 descriptor arrays (last axis = bytes, a
+    multiple of 8: ORB's 32), int32: np.bitwise_count over 64-bit words (as slam.vocab counts),
+    a quarter of the lookups of a byte table; 1 500 points × 8 candidates 0.29 against 1.24 ms."""
     words = [np.ascontiguousarray(x).view(np.uint64) for x in (a, b)]
     return np.bitwise_count(np.bitwise_xor(*words)).sum(-1, dtype=np.int32)
-
-
-#: Hamming distance between broadcastable uint8 descriptor arrays (last axis = bytes, a multiple
-#: of 8: ORB's 32), int32. numpy 2 where available; older numpy (e.g. beside a board's torch
-#: built against numpy 1.x) keeps the byte table.
-hamming = _hamming_words if hasattr(np, "bitwise_count") else _hamming_bytes
 
 
 def match_bf(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8,
