@@ -223,6 +223,40 @@ class _CirclingSlam:
         pass
 
 
+def _fly_circle(loc, gnss_until_s: float, end_s: float, rng, gnss_noise_m: float = 0.05,
+                gnss_acc_m: tuple[float, float] = (0.1, 0.15)) -> list[tuple[float, float]]:
+    """Feed the Localizer _CirclingSlam's frames at 10 fps with the autopilot's attitude and,
+    until gnss_until_s, trusted GNSS (white noise gnss_noise_m per axis, claiming gnss_acc_m as
+    h_acc / v_acc). Returns (horizontal error m, h_acc m) of every fix from 5 s after the loss on."""
+    from scipy.spatial.transform import Rotation
+
+    from companion.pipeline import PipelineInput
+    from gis.geodesy import R_NED_ENU
+    from mavlink_bridge.types import GnssSample, GpsFixType
+    from slam.types import AttitudePrior, Frame
+
+    # the autopilot's attitude of the camera (body = camera; SLAM's camera axes are its own)
+    yaw, pitch, roll = Rotation.from_matrix(R_NED_ENU @ T_ENU_SLAM.R).as_euler("ZYX")
+    img = np.zeros((48, 64), np.uint8)
+    T_ecef_enu = ORIGIN.R_ecef_enu
+    after = []
+    for k in range(int(round(10 * end_s))):
+        t = k / 10
+        loc.settle(t)
+        gnss = None
+        if t < gnss_until_s:
+            p = _CirclingSlam.cam_enu(t) + rng.normal(0, gnss_noise_m, 3)
+            lat, lon, h = (float(x[0]) for x in ecef_to_geodetic(enu_sim3(ORIGIN).apply(p[None])))
+            ve, vn, vu = _CirclingSlam.vel_enu(t)
+            gnss = GnssSample(t, GpsFixType.RTK_FIXED, lat, lon, h - 48.0, h, 0.6, 0.9, *gnss_acc_m, 20, (vn, ve, -vu))
+        fix = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, AttitudePrior(t, roll, pitch, yaw))).fix
+        if t >= gnss_until_s + 5.0 and fix is not None:
+            e = T_ecef_enu.T @ (fix.p_ecef_m - enu_sim3(ORIGIN).apply(_CirclingSlam.cam_enu(t)[None])[0])
+            after.append((float(np.hypot(e[0], e[1])), fix.h_acc_m))
+    loc.settle(np.inf)
+    return after
+
+
 def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(city):
     """The whole loop (real Localizer, GNSS bootstrap, FineTuner in its worker process,
     Globalizer; repeatable hand-over): the model is 3.2 m off horizontally and 0.5 m vertically,
@@ -230,13 +264,8 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
     (an alignment event says so, within 0.5 m of it), the worker and the Globalizer take the
     correction, and after the loss the fixes from registrations on the corrected model stay within
     0.8 m of the truth and within 3σ."""
-    from scipy.spatial.transform import Rotation
-
-    from companion.pipeline import BootstrapCollector, Localizer, PipelineInput
-    from gis.geodesy import R_NED_ENU
+    from companion.pipeline import BootstrapCollector, Localizer
     from gis.globalizer import Globalizer
-    from mavlink_bridge.types import GnssSample, GpsFixType
-    from slam.types import AttitudePrior, Frame
 
     b = np.array([2.6, -1.8, 0.5])
     shifted = dataclasses.replace(city, points_enu=city.points_enu + b)
@@ -244,27 +273,8 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
     loc = Localizer(slam, FineTuner(shifted), Globalizer(np.eye(4)), finetune_every_frames=50,
                     finetune_every_frames_denied=50, bootstrap=BootstrapCollector(T_body_cam=np.eye(4)),
                     repeatable_lag_s=0.5)
-    # the autopilot's attitude of the camera (body = camera; SLAM's camera axes are its own)
-    yaw, pitch, roll = Rotation.from_matrix(R_NED_ENU @ T_ENU_SLAM.R).as_euler("ZYX")
-    rng = np.random.default_rng(3)
-    img = np.zeros((48, 64), np.uint8)
-    T_ecef_enu = ORIGIN.R_ecef_enu
-    after = []
     try:
-        for k in range(550):
-            t = k / 10
-            loc.settle(t)
-            gnss = None
-            if t < 40.0:
-                p = _CirclingSlam.cam_enu(t) + rng.normal(0, 0.05, 3)
-                lat, lon, h = (float(x[0]) for x in ecef_to_geodetic(enu_sim3(ORIGIN).apply(p[None])))
-                ve, vn, vu = _CirclingSlam.vel_enu(t)
-                gnss = GnssSample(t, GpsFixType.RTK_FIXED, lat, lon, h - 48.0, h, 0.6, 0.9, 0.1, 0.15, 20, (vn, ve, -vu))
-            fix = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, AttitudePrior(t, roll, pitch, yaw))).fix
-            if t >= 45.0 and fix is not None:
-                e = T_ecef_enu.T @ (fix.p_ecef_m - enu_sim3(ORIGIN).apply(_CirclingSlam.cam_enu(t)[None])[0])
-                after.append((float(np.hypot(e[0], e[1])), fix.h_acc_m))
-        loc.settle(np.inf)
+        after = _fly_circle(loc, 40.0, 55.0, np.random.default_rng(3))
     finally:
         loc.close()
     found = [e for _, e in loc.events if "georeference off by" in e]
@@ -276,6 +286,49 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
     err, h_acc = np.array(after).T
     assert err.max() < 0.8, err.max()
     assert np.all(err <= 3 * h_acc)
+
+
+def test_registrations_refine_the_gnss_fit_while_gnss_is_trusted(city, tmp_path):
+    """While GNSS is trusted a registration refines the newest GNSS fit, also while the current
+    alignment is an earlier registration; only in a denial does it refine the previous
+    registration. (A chain of registrations is anchored by nothing outside the GIS model: over an
+    out-of-date model one walked 5 m off while GNSS was 0.5 m off, and its σ kept the GNSS fits
+    out; docs/BENCHMARKS.md, "Registrations while GNSS is trusted".) The real worker's journal
+    says what each registration refined. DGPS-grade GNSS (1 m claimed) so that a registration's
+    σ stays below the fits' and the registrations stay current between them."""
+    from companion.pipeline import BootstrapCollector, Localizer
+    from gis.align.journal import Journal, read_journal, write_meta
+    from gis.globalizer import Globalizer
+    from gis.types import AlignmentSource
+
+    slam = _CirclingSlam(slam_like_cloud(city, _CirclingSlam.center, 130, 6000, noise_m=0.3, seed=5))
+    tuner = FineTuner(city)
+    loc = Localizer(slam, tuner, Globalizer(np.eye(4)), finetune_every_frames=50,
+                    finetune_every_frames_denied=50, bootstrap=BootstrapCollector(T_body_cam=np.eye(4)),
+                    repeatable_lag_s=0.5)
+    loc.worker.journal = Journal(tmp_path)
+    write_meta(tmp_path, None, 1.0, tuner.config.model_dump(mode="json"),
+               (ORIGIN.lat0_deg, ORIGIN.lon0_deg, ORIGIN.h0_ellipsoid_m))
+    loss_s = 35.0
+    try:
+        after = _fly_circle(loc, loss_s, 47.0, np.random.default_rng(4), gnss_noise_m=0.4, gnss_acc_m=(1.0, 1.5))
+    finally:
+        loc.close()
+    accepted = [(t, e.split()[1]) for t, e in loc.events if e.startswith("alignment ") and " accepted " in e]
+
+    def current_at(t_s: float) -> str:
+        return [src for t, src in accepted if t <= t_s][-1]
+
+    records = read_journal(tmp_path)
+    trusted = [r for r in records if r.job.t_s < loss_s]
+    denied = [r for r in records if r.job.t_s >= loss_s]
+    over_a_registration = [r for r in trusted if current_at(r.job.t_s) == "fine"]
+    assert len(over_a_registration) >= 2, accepted  # the case in question happened
+    assert all(r.job.initial.source is AlignmentSource.GNSS for r in trusted), [(r.job.t_s, r.job.initial.source) for r in trusted]
+    assert all(r.alignment is not None for r in trusted)
+    assert denied and all(r.job.initial.source is AlignmentSource.FINE for r in denied)
+    err, h_acc = np.array(after).T
+    assert len(after) >= 60 and np.all(err <= 3 * h_acc), (err.max(), h_acc.min())
 
 
 def test_the_localizer_starts_corrected_from_earlier_flights_evidence(city):
