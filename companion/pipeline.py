@@ -530,7 +530,7 @@ def _baro_m(prior: AttitudePrior | None) -> float | None:
 
 BARO_OFFSET_GAIN = 0.02  # per trusted GNSS pair (5 Hz): ~10 s time constant
 BARO_NOISE_M = 0.3       # barometric height 1-σ beside the offset's (noise 0.15 m, drift 0.02 m/√s over a minute)
-GEOREF_MAX_FIT_AGE_S = 5.0  # a registration is compared with a GNSS fit at most this old (gis.align.georef)
+GEOREF_MAX_FIT_AGE_S = 5.0  # a GNSS fit at most this old is what a registration is compared with (gis.align.georef) and refines instead of a straying chain
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
