@@ -892,14 +892,14 @@ class Localizer:
                 if self.recent_keyframes > 0 and snapshot.last_seen_kf_age is not None:
                     keep &= snapshot.last_seen_kf_age < self.recent_keyframes
                 points, ids = points[keep], ids[keep]
-                prior = self._registration_prior(alignment, pose, item.gnss_trusted)
+                fit = self._fresh_gnss_fit(pose) if item.gnss_trusted else None
+                prior = self._registration_prior(alignment, pose, fit)
                 h_cam = self._camera_h_ell_m(item.prior)
                 # its 1-σ: the GNSS vertical accuracy the offset was learned from, and the barometer's own
                 h_sigma = None if h_cam is None else math.hypot(self._baro_offset_sigma_m, BARO_NOISE_M)
                 if len(points) >= self.min_points and self.worker.submit(
                         points, prior, pose.T_slam_cam[:3, 3].copy(), pose.t_s, h_cam, h_sigma):
                     self._frames_since_tune = 0
-                    fit = self._fresh_gnss_fit(pose) if item.gnss_trusted else None
                     self._georef_job = (pose.t_s, pose.T_slam_cam[:3, 3].copy(), fit) if fit is not None else None
                     crop = self._tuner.in_crop(points, prior.T_ecef_slam, pose.T_slam_cam[:3, 3])
                     order = np.argsort(ids[crop], kind="stable")
@@ -921,10 +921,11 @@ class Localizer:
             return fit
         return None
 
-    def _registration_prior(self, alignment: Alignment, pose: SlamPose, gnss_trusted: bool) -> Alignment:
-        """The alignment a registration refines: the current one, except while GNSS is trusted, the
-        current one is itself a registration (FINE) and it puts the camera further from where the
-        fresh GNSS fit puts it than that fit's own 1-σ there: then the fit. A chain of
+    def _registration_prior(self, alignment: Alignment, pose: SlamPose, fit: Alignment | None) -> Alignment:
+        """The alignment a registration refines: the current one, except where GNSS is trusted and
+        ``fit`` is its fresh fit (_fresh_gnss_fit; None otherwise), the current one is itself a
+        registration (FINE) and it puts the camera further from where the fit puts it than the
+        fit's own 1-σ there: then the fit. A chain of
         registrations, each refining the last, is anchored by nothing outside the GIS model: over
         a model that is out of date it walked 5 m off while GNSS was trusted and 0.5 m off, each
         link claiming ~1 m, below the fits' σ, so no fit replaced it (`stale` seed 3, a
@@ -932,8 +933,7 @@ class Localizer:
         instead every time cost accuracy where the chain was right (`nominal` at 30 fps: 0.29 →
         0.37 m); dropping the chain only where it strays from GNSS kept both (docs/BENCHMARKS.md,
         "Registrations while GNSS is trusted"). In a denial the chain is all there is."""
-        fit = self._fresh_gnss_fit(pose) if gnss_trusted and alignment.source is AlignmentSource.FINE else None
-        if fit is None:
+        if fit is None or alignment.source is not AlignmentSource.FINE:
             return alignment
         c = pose.T_slam_cam[:3, 3]
         apart_m = float(np.linalg.norm(alignment.T_ecef_slam.apply(c[None])[0] - fit.T_ecef_slam.apply(c[None])[0]))

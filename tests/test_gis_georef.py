@@ -292,8 +292,8 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
 def _journalled_flight(city, folder, loss_s: float, gnss_bias_enu_m=(0.0, 0.0, 0.0)):
     """A _fly_circle flight with DGPS-grade GNSS (0.4 m noise, 1 m claimed: a registration's σ
     stays below the fits', so registrations stay current between fits) and a registration every
-    5 s, journalled by the real worker. Returns (journal records, flight, [(t_s, source) of each
-    accepted alignment], after-loss fixes as _fly_circle)."""
+    5 s, journalled by the real worker. Returns (journal records, [(t_s, source) of each accepted
+    alignment], after-loss fixes as _fly_circle)."""
     from companion.pipeline import BootstrapCollector, Localizer
     from gis.align.journal import Journal, read_journal, write_meta
     from gis.globalizer import Globalizer
