@@ -210,7 +210,13 @@ class SlamSpeedCheck:
     The window keeps SLAM-frame positions and takes the displacement under the alignment of the
     latest sample: while GNSS is good a new alignment is adopted every few seconds, and the
     globalised positions of one window under two alignments differ by the change between them,
-    which is not motion.
+    which is not motion. The speed is the length of the component-wise median of the frame-to-frame
+    horizontal velocities, not the window's end-to-end displacement: local mapping moves the map,
+    and the tracked camera with it, by metres in one frame (bundle adjustment, loop closures; 3–9 m
+    in a `loop` flight's second lap), which read as scale breaks (ratios 0.08–1.35) and dropped the
+    alignment just before GNSS was lost, so no fix came for the rest of the flight
+    (docs/BENCHMARKS.md, "Long `loop` denials on this machine"). A jump is one step of ~10; a scale
+    break shrinks or stretches every step.
     """
 
     window_s: float = 1.0
@@ -229,15 +235,20 @@ class SlamSpeedCheck:
         if gnss_speed_mps is None or not math.isfinite(gnss_speed_mps):
             self._hist.clear()  # compare only over spans with GNSS speed throughout
             return self.broken
+        if self._hist and t_s - self._hist[-1][0] > self.window_s:
+            self._hist.clear()  # GNSS speed came back after a gap: a new span
         self._hist.append((t_s, np.asarray(c_slam, float), float(gnss_speed_mps)))
         while len(self._hist) > 2 and self._hist[1][0] <= t_s - self.window_s:
             self._hist.pop(0)
-        t0, c0, _ = self._hist[0]
+        t0 = self._hist[0][0]
         if t_s - t0 < 0.5 * self.window_s:
             return self.broken
-        p0, p1 = T_ecef_slam.apply(np.array([c0, self._hist[-1][1]]))
-        v_enu = R_ecef_enu_.T @ (p1 - p0) / (t_s - t0)
-        v_vis = float(np.hypot(v_enu[0], v_enu[1]))
+        t = np.array([h[0] for h in self._hist])
+        p_enu = T_ecef_slam.apply(np.array([h[1] for h in self._hist])) @ R_ecef_enu_  # rows: ENU axes, ECEF origin
+        dt = np.diff(t)
+        steps = dt > 0
+        v_step = np.diff(p_enu[:, :2], axis=0)[steps] / dt[steps, None]
+        v_vis = float(np.linalg.norm(np.median(v_step, axis=0)))
         v_gnss = float(np.mean([v for _, _, v in self._hist[1:]]))  # the same span's mean ground speed
         if max(v_vis, v_gnss) < self.min_speed_mps:
             self._since = None
@@ -259,6 +270,19 @@ class SlamSpeedCheck:
     def reset(self) -> None:
         self._hist.clear()
         self._since, self.broken, self.last_ratio = None, False, 1.0
+
+    def open_since(self, t_s: float) -> float | None:
+        """When a mismatch that GNSS ground speed stopped coming for (a loss mid-check, ``window_s``
+        or more before ``t_s``) was first seen; else None. Nothing here can settle it any more:
+        fixes stay withheld (``suspect``) until ``settle`` with another test of the scale."""
+        if self._since is None or self.broken or (self._hist and t_s - self._hist[-1][0] < self.window_s):
+            return None
+        return self._since
+
+    def settle(self) -> None:
+        """Another test of the scale passed after the open mismatch began (``open_since``)."""
+        self._hist.clear()
+        self._since, self.last_ratio = None, 1.0
 
 
 @dataclass
@@ -601,6 +625,7 @@ class Localizer:
         self._gnss_fit: Alignment | None = None
         self._georef_job: tuple[float, np.ndarray, Alignment] | None = None
         self._scale_check_t_s = -math.inf
+        self._scale_confirmed: tuple[float, str] | None = None  # (t_s, by what) of the latest passed test of the scale
         # (t_s, check) of the recent barometer checks between registrations (diagnostics)
         self.scale_checks: collections.deque[tuple[float, ScaleCheck]] = collections.deque(maxlen=MAX_EVENTS)
         self.worker = (FineTuneWorker(tuner, self._on_finetune, self._on_scale_check, lag_s=repeatable_lag_s)
@@ -749,6 +774,8 @@ class Localizer:
         if current is not None and (alignment.map_id, alignment.reset_counter) != (current.map_id, current.reset_counter):
             return  # the map changed while we registered: stale
         self._accept(alignment, f"{reason}, {wall_ms:.0f} ms")
+        # its scale is the model's (and it passed the barometer's check when there is one)
+        self._scale_confirmed = (alignment.t_s, "a GIS registration")
 
     def _check_georef(self, t_s: float, c_slam: np.ndarray, fit: Alignment, icp: IcpMeasurement) -> None:
         """One registration made while GNSS was trusted: where its ICP alone put the camera against
@@ -796,6 +823,18 @@ class Localizer:
         else:
             self._note((t_s, f"GIS model georeference as configured again ({test}): correction dropped"))
 
+    def _settle_speed_check(self, t_s: float) -> None:
+        """A SLAM-speed mismatch left open by the end of GNSS ground speed (GNSS lost in the middle
+        of the check) withholds fixes until another test of the scale made after it began passes:
+        a GIS registration or the barometer's check. Before, it withheld them for the rest of the
+        denial (docs/BENCHMARKS.md, "Long `loop` denials on this machine")."""
+        since = self.speed_check.open_since(t_s)
+        ok = self._scale_confirmed
+        if since is not None and ok is not None and ok[0] >= since:
+            self._note((t_s, f"SLAM speed mismatch seen at {since:.1f} s (ratio {self.speed_check.last_ratio:.2f}) "
+                              f"as GNSS speed ended: scale confirmed by {ok[1]}, fixes resume"))
+            self.speed_check.settle()
+
     def _on_scale_check(self, checked: Alignment, chk: ScaleCheck) -> None:
         t = self._last_pose.t_s if self._last_pose else 0.0
         self.scale_checks.append((t, chk))
@@ -803,6 +842,8 @@ class Localizer:
             current = self.alignment
         if chk.mismatch and current is checked:  # (a newer alignment was not tested)
             self._withhold(t, f"{SCALE_MISMATCH_REASON}: {chk.describe()} (check between registrations)")
+        elif math.isfinite(chk.ratio) and not chk.mismatch and current is checked:
+            self._scale_confirmed = (self._scale_check_t_s, "the barometer")  # (submitted then; one in flight)
 
     def _check_scale(self, pose: SlamPose, alignment: Alignment, prior: AttitudePrior | None) -> None:
         """Every SCALE_CHECK_EVERY_S: the barometer against the map points this frame was tracked
@@ -909,6 +950,8 @@ class Localizer:
                     self._frames_since_tune = every - RETRY_FRAMES
             if alignment is not None:
                 self._check_scale(pose, alignment, item.prior)
+        self._settle_speed_check(pose.t_s)
+        self.globalizer.hold_jumps(pose.t_s, not item.gnss_trusted)
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         fix = self._denial_floor(item.gnss_trusted, pose, alignment, fix)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())

@@ -18,6 +18,11 @@ against a σ of 1.45 m — 2.7 % of that flight's fixes beyond 3σ. Each fix is 
 constant-velocity prediction from the previous ones under the same alignment (the innovation of a
 constant-velocity model; covariance matching from innovations, Mehra 1972); the largest recent
 innovation, decaying with JUMP_MEMORY_S, is added to the fix's covariance as an isotropic term.
+The decay assumes something will re-anchor the track: GNSS fits do, every few seconds. In a GNSS
+denial nothing independent does (a GIS registration converges next to its prior, docs/BENCHMARKS.md
+"Registrations replayed offline"), so while the Localizer holds the term (``hold_jumps``) it does
+not decay: an 8 m jump at a `loop` flight's GNSS loss left every later fix 7–10 m off while the
+decayed term let the claim fall to 1.4 m within 12 s (docs/BENCHMARKS.md, "Long denials: honest by default").
 """
 from __future__ import annotations
 
@@ -53,6 +58,7 @@ class Globalizer:
         self._prev: tuple[float, np.ndarray, Alignment] | None = None
         self._v_ecef: np.ndarray | None = None           # smoothed fix velocity (ECEF m/s) under _prev's alignment
         self._jump: tuple[float, float] = (0.0, 0.0)     # (t_s, m) of the largest recent innovation
+        self._hold_jumps = False                         # no decay (``hold_jumps``)
 
     @classmethod
     def from_config(cls, T_body_cam: np.ndarray, config: AlignmentConfig) -> "Globalizer":
@@ -71,6 +77,16 @@ class Globalizer:
             self._prev = None
             self._v_ecef = None
             self._jump = (0.0, 0.0)
+
+    def hold_jumps(self, t_s: float, hold: bool) -> None:
+        """While held (GNSS not trusted: nothing re-anchors the track), the SLAM-jump term keeps the
+        value it has at ``t_s`` and grows with new jumps, but does not decay; released, it decays
+        from ``t_s`` on (module doc)."""
+        with self._lock:
+            if hold == self._hold_jumps:
+                return
+            self._jump = (t_s, self._decayed_m(t_s))
+            self._hold_jumps = hold
 
     def update_alignment(self, a: Alignment, follows: Alignment | None = None) -> None:
         """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe).
@@ -150,12 +166,15 @@ class Globalizer:
             if self._v_ecef is not None:
                 now_m = float(np.linalg.norm(v - self._v_ecef) * dt)
             self._v_ecef = v if self._v_ecef is None else self._v_ecef + VELOCITY_SMOOTHING * (v - self._v_ecef)
-        t_j, j_m = self._jump
-        decayed_m = j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
+        decayed_m = self._decayed_m(t_s)
         if now_m >= decayed_m:
             self._jump = (t_s, now_m)
             return now_m
         return decayed_m
+
+    def _decayed_m(self, t_s: float) -> float:
+        t_j, j_m = self._jump
+        return j_m if self._hold_jumps else j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
 
     def _velocity(self, step: tuple[float, np.ndarray] | None, R_ned_ecef: np.ndarray):
         """NED velocity and its 1-σ from _step's fix-to-fix difference (None, None without one)."""

@@ -895,3 +895,48 @@ def test_in_a_denial_the_fixes_claim_no_better_than_the_distance_flown_allows():
             assert floored.h_acc_m == pytest.approx(max(plain.h_acc_m, 0.1 * flown_m), rel=1e-6)
     assert runs[0.1][39].h_acc_m == pytest.approx(0.1 * 8.0 * 2.9, rel=1e-6)
     assert runs[0.1][39].h_acc_m > 3 * runs[0.0][39].h_acc_m  # the floor, not the Globalizer's σ, decided
+
+
+def test_in_a_denial_a_slam_jump_widens_every_later_fix_not_only_the_next_seconds():
+    """The Globalizer's SLAM-jump term decays over JUMP_MEMORY_S while GNSS is trusted (fits
+    re-anchor the track every few seconds); while it is not, the Localizer holds it: a 5 m jump
+    of the track 0.5 s into a denial widens every later fix by that much, for as long as the denial
+    lasts (`loop` seed 6: an 8 m jump at the loss, fixes 7–10 m off for the next 30 s). Once GNSS is
+    trusted again the term decays from there. The positions are the same either way."""
+    from companion.pipeline import Localizer, PipelineInput
+    from gis.globalizer import JUMP_MEMORY_S
+    from slam.types import Frame
+
+    class _Jumping(_RevisitSlam):
+        def track(self, frame, prior=None):
+            pose = super().track(frame, prior)
+            if frame.t_s >= 1.5:  # the track jumps 5 m east and stays there
+                pose.T_slam_cam[:3, 3] = _slam((self.cam_enu(frame.t_s) + self.drift_enu + [5.0, 0.0, 0.0])[None])[0]
+            return pose
+
+    a0 = _prior_about(_RevisitSlam.cam_enu(0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), sigma_t_m=0.3, source=AlignmentSource.FINE)
+    img = np.zeros((48, 64), np.uint8)
+
+    def alone(pose):  # the alignment's accuracy at this pose, nothing predicted
+        g = Globalizer(np.eye(4))
+        g.update_alignment(a0)
+        return g.fix(pose).h_acc_m
+
+    def fly(trusted):
+        loc = Localizer(_Jumping(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(3)), None, Globalizer(np.eye(4)), initial_alignment=a0)
+        try:
+            recs = [loc.process(PipelineInput(Frame(img, k / 10, k), None, trusted(k), None)) for k in range(200)]
+        finally:
+            loc.close()
+        return [r.fix for r in recs], [np.sqrt(max(r.fix.h_acc_m ** 2 - alone(r.pose) ** 2, 0.0)) for r in recs]
+
+    trusted, extra_trusted = fly(lambda k: True)
+    denied, extra_denied = fly(lambda k: not 10 <= k < 150)  # GNSS lost at 1.0 s, back at 15.0 s
+    extra = {"trusted": extra_trusted, "denied": extra_denied}
+    for f, g in zip(trusted, denied):
+        np.testing.assert_array_equal(f.p_ecef_m, g.p_ecef_m)
+    assert max(extra["denied"][:15]) < 1e-3 and extra["denied"][15] == pytest.approx(5.0, abs=0.1)
+    k_e = 15 + int(10 * JUMP_MEMORY_S)
+    assert extra["trusted"][k_e] == pytest.approx(extra["trusted"][15] * np.exp(-1.0), rel=0.05)  # decays
+    assert min(extra["denied"][15:150]) == pytest.approx(extra["denied"][15], rel=1e-6)  # held through the denial
+    assert extra["denied"][149 + int(10 * JUMP_MEMORY_S)] == pytest.approx(extra["denied"][15] * np.exp(-1.0), rel=0.05)

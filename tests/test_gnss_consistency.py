@@ -75,11 +75,12 @@ def test_monitor_turns_the_vision_verdict_into_untrusted():
 
 
 def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: float = 8.0, t_change_s: float = 5.0,
-                     realign_every_s: float | None = None):
+                     realign_every_s: float | None = None, jumps_m: dict[float, float] | None = None):
     """A vehicle flying east at speed_mps; our SLAM track (aligned to ENU metres) shrinks to
     scale_after × after t_change_s (a monocular scale collapse), GNSS ground speed is the truth +
     drift_mps (a walk-off). realign_every_s: a new alignment, 3 m east of the last, that often (GNSS
-    re-bootstraps moving the globalised track by that much)."""
+    re-bootstraps moving the globalised track by that much). jumps_m: {t: metres}: local mapping
+    moves the map, and the tracked camera with it, that far east at t (it stays moved)."""
     from companion.pipeline import SlamSpeedCheck
     from gis.align.fine import enu_sim3
     from gis.geodesy import LocalFrame
@@ -92,7 +93,7 @@ def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: floa
     x = 0.0
     for k in range(150):
         t = k * 0.1
-        x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0)
+        x += speed_mps * 0.1 * (scale_after if t >= t_change_s else 1.0) + (jumps_m or {}).get(round(t, 1), 0.0)
         shift_m = 3.0 * int(t / realign_every_s) if realign_every_s else 0.0
         T_ecef_slam = T_ecef_enu @ Sim3(1.0, np.eye(3), np.array([shift_m, 0.0, 0.0]))
         broken = check.update(t, np.array([x, 0.0, 60.0]), T_ecef_slam, origin.R_ecef_enu, speed_mps + drift_mps)
@@ -114,3 +115,69 @@ def test_slam_scale_collapse_is_caught_by_gnss_ground_speed():
     assert _speed_check_run(scale_after=1.0, realign_every_s=2.0) == (None, None)
     suspect_t, _ = _speed_check_run(scale_after=0.5, realign_every_s=2.0)
     assert suspect_t is not None and 5.0 < suspect_t <= 6.0
+    # local mapping moves the map under the camera by metres in one frame, back or forth (a `loop`
+    # flight's second lap: 3-9 m): not a scale break; the end-to-end displacement read 0.08-1.35
+    jumps = {3.0: -3.5, 7.0: 5.0, 7.3: 2.0, 11.0: 9.0}
+    assert _speed_check_run(scale_after=1.0, jumps_m=jumps) == (None, None)
+    suspect_t, broken_t = _speed_check_run(scale_after=0.5, jumps_m=jumps)
+    assert suspect_t is not None and 5.0 < suspect_t <= 6.0 and broken_t - suspect_t <= 0.6
+
+
+def test_a_speed_mismatch_open_at_the_gnss_loss_waits_for_the_next_scale_test_not_for_gnss():
+    """GNSS is lost 0.3 s into a SLAM-speed mismatch (the tracked camera crawls at half speed for
+    a second: a scale break or not, nobody can tell yet): the check cannot settle it without GNSS
+    speed, so fixes are withheld, until the first GIS registration after the loss (scale from the
+    model) settles it; then the fixes come back, on the truth. Before, the open mismatch withheld
+    every fix for the rest of the denial (`loop` seed 5: none in 75 s)."""
+    from scipy.spatial.transform import Rotation
+
+    from companion.pipeline import BootstrapCollector, Localizer, PipelineInput
+    from gis.align.fine import FineTuner, enu_sim3
+    from gis.geodesy import R_NED_ENU, ecef_to_geodetic
+    from gis.globalizer import Globalizer
+    from gis.synthetic import box_city_model, slam_like_cloud
+    from mavlink_bridge.types import GnssSample, GpsFixType
+    from slam.types import AttitudePrior, Frame
+    from test_gis_align import ORIGIN, T_ENU_SLAM
+    from test_gis_georef import _CirclingSlam, _slam
+
+    class _Crawl(_CirclingSlam):
+        def track(self, frame, prior=None):
+            pose = super().track(frame, prior)
+            if 39.0 <= frame.t_s < 40.0:  # half speed over this second, then back on the true path
+                pose.T_slam_cam[:3, 3] = _slam(self.cam_enu(39.0 + 0.5 * (frame.t_s - 39.0))[None])[0]
+            return pose
+
+    city = box_city_model(600.0, ORIGIN, seed=1, spacing_m=1.0)
+    slam = _Crawl(slam_like_cloud(city, _CirclingSlam.center, 130, 6000, noise_m=0.3, seed=5))
+    loc = Localizer(slam, FineTuner(city), Globalizer(np.eye(4)), finetune_every_frames=50,
+                    finetune_every_frames_denied=50, bootstrap=BootstrapCollector(T_body_cam=np.eye(4)),
+                    repeatable_lag_s=0.5)
+    yaw, pitch, roll = Rotation.from_matrix(R_NED_ENU @ T_ENU_SLAM.R).as_euler("ZYX")
+    rng = np.random.default_rng(3)
+    img = np.zeros((48, 64), np.uint8)
+    err = {}
+    try:
+        for k in range(520):
+            t = round(k / 10, 1)
+            loc.settle(t)
+            gnss = None
+            if t < 39.85:
+                p = _CirclingSlam.cam_enu(t) + rng.normal(0, 0.05, 3)
+                lat, lon, h = (float(x[0]) for x in ecef_to_geodetic(enu_sim3(ORIGIN).apply(p[None])))
+                ve, vn, vu = _CirclingSlam.vel_enu(t)
+                gnss = GnssSample(t, GpsFixType.RTK_FIXED, lat, lon, h - 48.0, h, 0.6, 0.9, 0.1, 0.15, 20, (vn, ve, -vu))
+            fix = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, AttitudePrior(t, roll, pitch, yaw))).fix
+            if fix is not None:
+                e = ORIGIN.R_ecef_enu.T @ (fix.p_ecef_m - enu_sim3(ORIGIN).apply(_CirclingSlam.cam_enu(t)[None])[0])
+                err[t] = float(np.hypot(e[0], e[1]))
+        loc.settle(np.inf)
+    finally:
+        loc.close()
+    settled = [(t, e) for t, e in loc.events if "scale confirmed by a GIS registration" in e]
+    assert len(settled) == 1, list(loc.events)
+    t_ok = settled[0][0]
+    assert 40.0 < t_ok < 47.0
+    assert not [t for t in err if 39.6 <= t < t_ok]  # withheld while the mismatch was open
+    after = [err[t] for t in err if t >= t_ok]
+    assert len(after) >= 0.9 * (52.0 - t_ok) * 10 and max(after) < 1.0, (len(after), max(after, default=None))
