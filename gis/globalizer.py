@@ -157,7 +157,7 @@ class Globalizer:
     def _jump_m(self, t_s: float, step: tuple[float, np.ndarray] | None) -> float:
         """The SLAM-jump term (module doc): the distance of this fix from the constant-velocity
         prediction of the previous fixes (``step``: _step's), or the largest earlier one decayed by
-        exp(−Δt / JUMP_MEMORY_S), whichever is larger."""
+        exp(−Δt / JUMP_MEMORY_S) (not decayed while held: ``hold_jumps``), whichever is larger."""
         now_m = 0.0
         if step is None:
             self._v_ecef = None
@@ -173,6 +173,7 @@ class Globalizer:
         return decayed_m
 
     def _decayed_m(self, t_s: float) -> float:
+        """The recorded jump term at t_s: decayed since it was recorded, or as it is while held."""
         t_j, j_m = self._jump
         return j_m if self._hold_jumps else j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
 
