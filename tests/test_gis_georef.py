@@ -224,11 +224,12 @@ class _CirclingSlam:
 
 
 def _fly_circle(loc, gnss_until_s: float, end_s: float, rng, gnss_noise_m: float = 0.05,
-                gnss_acc_m: tuple[float, float] = (0.1, 0.15), gnss_bias_enu_m=(0.0, 0.0, 0.0)) -> list[tuple[float, float]]:
+                gnss_acc_m: tuple[float, float] = (0.1, 0.15), gnss_bias_enu_m=(0.0, 0.0, 0.0),
+                record_from_s: float | None = None) -> dict[float, tuple[float, float]]:
     """Feed the Localizer _CirclingSlam's frames at 10 fps with the autopilot's attitude and,
     until gnss_until_s, trusted GNSS (off by gnss_bias_enu_m plus white noise gnss_noise_m per
-    axis, claiming gnss_acc_m as h_acc / v_acc). Returns (horizontal error m, h_acc m) of every
-    fix from 5 s after the loss on."""
+    axis, claiming gnss_acc_m as h_acc / v_acc). Returns {t_s: (horizontal error m, h_acc m)} of
+    every fix from record_from_s (default: 5 s after the loss) on."""
     from scipy.spatial.transform import Rotation
 
     from companion.pipeline import PipelineInput
@@ -240,7 +241,8 @@ def _fly_circle(loc, gnss_until_s: float, end_s: float, rng, gnss_noise_m: float
     yaw, pitch, roll = Rotation.from_matrix(R_NED_ENU @ T_ENU_SLAM.R).as_euler("ZYX")
     img = np.zeros((48, 64), np.uint8)
     T_ecef_enu = ORIGIN.R_ecef_enu
-    after = []
+    record_from_s = gnss_until_s + 5.0 if record_from_s is None else record_from_s
+    after = {}
     for k in range(int(round(10 * end_s))):
         t = k / 10
         loc.settle(t)
@@ -251,9 +253,9 @@ def _fly_circle(loc, gnss_until_s: float, end_s: float, rng, gnss_noise_m: float
             ve, vn, vu = _CirclingSlam.vel_enu(t)
             gnss = GnssSample(t, GpsFixType.RTK_FIXED, lat, lon, h - 48.0, h, 0.6, 0.9, *gnss_acc_m, 20, (vn, ve, -vu))
         fix = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, AttitudePrior(t, roll, pitch, yaw))).fix
-        if t >= gnss_until_s + 5.0 and fix is not None:
+        if t >= record_from_s and fix is not None:
             e = T_ecef_enu.T @ (fix.p_ecef_m - enu_sim3(ORIGIN).apply(_CirclingSlam.cam_enu(t)[None])[0])
-            after.append((float(np.hypot(e[0], e[1])), fix.h_acc_m))
+            after[t] = (float(np.hypot(e[0], e[1])), fix.h_acc_m)
     loc.settle(np.inf)
     return after
 
@@ -284,7 +286,7 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
     assert c is not None and np.linalg.norm(c.offset_enu_m - b) < 0.5, c
     assert loc.worker.correction is c and loc.globalizer.model_sigma_m == c.sigma_m
     assert len(after) >= 90
-    err, h_acc = np.array(after).T
+    err, h_acc = np.array(list(after.values())).T
     assert err.max() < 0.8, err.max()
     assert np.all(err <= 3 * h_acc)
 
@@ -347,7 +349,7 @@ def test_while_gnss_is_trusted_a_registration_refines_the_last_one_only_if_it_ag
         assert denied and all(r.job.initial.source is AlignmentSource.FINE for r in denied)
         assert all(r.alignment is not None for r in records)
         if chain_kept:
-            err, h_acc = np.array(after).T
+            err, h_acc = np.array(list(after.values())).T
             assert len(after) >= 60 and np.all(err <= 3 * h_acc), (err.max(), h_acc.min())
 
 

@@ -129,17 +129,12 @@ def test_a_speed_mismatch_open_at_the_gnss_loss_waits_for_the_next_scale_test_no
     speed, so fixes are withheld, until the first GIS registration after the loss (scale from the
     model) settles it; then the fixes come back, on the truth. Before, the open mismatch withheld
     every fix for the rest of the denial (`loop` seed 5: none in 75 s)."""
-    from scipy.spatial.transform import Rotation
-
-    from companion.pipeline import BootstrapCollector, Localizer, PipelineInput
-    from gis.align.fine import FineTuner, enu_sim3
-    from gis.geodesy import R_NED_ENU, ecef_to_geodetic
+    from companion.pipeline import BootstrapCollector, Localizer
+    from gis.align.fine import FineTuner
     from gis.globalizer import Globalizer
     from gis.synthetic import box_city_model, slam_like_cloud
-    from mavlink_bridge.types import GnssSample, GpsFixType
-    from slam.types import AttitudePrior, Frame
-    from test_gis_align import ORIGIN, T_ENU_SLAM
-    from test_gis_georef import _CirclingSlam, _slam
+    from test_gis_align import ORIGIN
+    from test_gis_georef import _CirclingSlam, _fly_circle, _slam
 
     class _Crawl(_CirclingSlam):
         def track(self, frame, prior=None):
@@ -153,27 +148,11 @@ def test_a_speed_mismatch_open_at_the_gnss_loss_waits_for_the_next_scale_test_no
     loc = Localizer(slam, FineTuner(city), Globalizer(np.eye(4)), finetune_every_frames=50,
                     finetune_every_frames_denied=50, bootstrap=BootstrapCollector(T_body_cam=np.eye(4)),
                     repeatable_lag_s=0.5)
-    yaw, pitch, roll = Rotation.from_matrix(R_NED_ENU @ T_ENU_SLAM.R).as_euler("ZYX")
-    rng = np.random.default_rng(3)
-    img = np.zeros((48, 64), np.uint8)
-    err = {}
-    try:
-        for k in range(520):
-            t = round(k / 10, 1)
-            loc.settle(t)
-            gnss = None
-            if t < 39.85:
-                p = _CirclingSlam.cam_enu(t) + rng.normal(0, 0.05, 3)
-                lat, lon, h = (float(x[0]) for x in ecef_to_geodetic(enu_sim3(ORIGIN).apply(p[None])))
-                ve, vn, vu = _CirclingSlam.vel_enu(t)
-                gnss = GnssSample(t, GpsFixType.RTK_FIXED, lat, lon, h - 48.0, h, 0.6, 0.9, 0.1, 0.15, 20, (vn, ve, -vu))
-            fix = loc.process(PipelineInput(Frame(img, t, k), gnss, gnss is not None, AttitudePrior(t, roll, pitch, yaw))).fix
-            if fix is not None:
-                e = ORIGIN.R_ecef_enu.T @ (fix.p_ecef_m - enu_sim3(ORIGIN).apply(_CirclingSlam.cam_enu(t)[None])[0])
-                err[t] = float(np.hypot(e[0], e[1]))
-        loc.settle(np.inf)
+    try:  # GNSS (trusted) until 39.85 s, i.e. its last sample at 39.8 s; every fix recorded
+        fixes = _fly_circle(loc, 39.85, 52.0, np.random.default_rng(3), record_from_s=0.0)
     finally:
         loc.close()
+    err = {t: e for t, (e, _) in fixes.items()}
     settled = [(t, e) for t, e in loc.events if "scale confirmed by a GIS registration" in e]
     assert len(settled) == 1, list(loc.events)
     t_ok = settled[0][0]
