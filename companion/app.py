@@ -56,6 +56,7 @@ class SimClock:
 #: process happens to finish. 0.3 s is about twice a registration's wall time on a loaded 2-core
 #: board (suite means 80–145 ms); bench counts the registrations that took longer.
 REPEATABLE_LAG_S = 0.3
+REPEATABLE_DELIVERY_TIMEOUT_S = 10.0  # fly_sim: how long a repeatable run waits for the autopilot's messages of a frame
 
 #: Replay: a frame goes with the newest ATTITUDE up to this old, also when none arrived since the
 #: previous frame (what the service asks of ``Bridge.attitude``).
@@ -110,7 +111,7 @@ def build_localizer(cfg: AppConfig, camera: CameraModel, T_body_cam: np.ndarray,
 
     slam = SlamSystem(camera, cfg.slam, initial_map=initial_map,
                       reloc_timeout_s=cfg.persistence.reloc_timeout_s if reloc_timeout_s is None else reloc_timeout_s,
-                      keep_loaded=keep_loaded_map)
+                      keep_loaded=keep_loaded_map, stepped=repeatable)
     tuner = FineTuner(model, cfg.alignment) if model is not None else None
     return Localizer(slam, tuner, Globalizer.from_config(T_body_cam, cfg.alignment), cfg.alignment.finetune_every_frames,
                      finetune_every_frames_denied=cfg.alignment.finetune_every_frames_denied,
@@ -334,7 +335,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
             truth = step.truth
             if truth is not None:
                 ap.set_truth(truth.lat_deg, truth.lon_deg, truth.h_msl_m)
-            att = _wait_attitude(bridge, step.frame.t_s)
+            att = _wait_delivered(bridge, ap, step.frame.t_s, REPEATABLE_DELIVERY_TIMEOUT_S if repeatable else 0.05)
             status = bridge.gnss_status()
             localizer.settle(step.frame.t_s)  # may wait for the worker: not part of the frame's latency
             sent_before = bridge.sent_count(out_msg)
@@ -418,13 +419,22 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     return summary
 
 
-def _wait_attitude(bridge, t_s: float, timeout_s: float = 0.05):
-    """Simulated flight only: the autopilot's ATTITUDE for simulated time t_s is on its way over UDP
-    when the frame is processed; wait for it briefly (real time) instead of using the previous one."""
+def _wait_delivered(bridge, ap, t_s: float, timeout_s: float):
+    """Simulated flight only: the autopilot's ATTITUDE for simulated time t_s, and whatever else it
+    sent for it (GPS_RAW_INT, the barometer), are on their way over UDP when the frame is processed:
+    wait (real time) until the bridge has the attitude and the autopilot's last message
+    (MAVLink sequence number) instead of using the previous ones. Free-running, briefly, as a live
+    pipeline would not wait; repeatable, as long as it takes (what the frame sees must not depend
+    on how loaded this machine is)."""
     t_end = time.monotonic() + timeout_s
     while True:
         att = bridge.attitude(max_age_s=0.1)
-        if (att is not None and att.t_s >= t_s - 1e-3) or time.monotonic() >= t_end:
+        if att is not None and att.t_s >= t_s - 1e-3 and bridge.stats().last_seq == ap.last_sent_seq():
+            return att
+        if time.monotonic() >= t_end:
+            if timeout_s >= REPEATABLE_DELIVERY_TIMEOUT_S:
+                log.warning("repeatable run: the simulated autopilot's messages for %.2f s not all at the bridge "
+                            "after %.0f s; going on", t_s, timeout_s)
             return att
         time.sleep(0.001)
 

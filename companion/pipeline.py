@@ -858,7 +858,9 @@ class Localizer:
 
     def settle(self, t_s: float) -> None:
         """Repeatable offline runs (``repeatable_lag_s``): before the frame at flight time ``t_s``,
-        wait until local mapping has mapped every keyframe and applied its bundle adjustment, and
+        wait until local mapping has mapped every keyframe and applied its bundle adjustment (the
+        SLAM system, ``stepped``, hands a frame's keyframe to local mapping only here, so nothing
+        the frame reads from the map after tracking depends on the mapping thread's speed), and
         adopt the fine-tuning results due by ``t_s`` (submitted repeatable_lag_s or more before;
         waiting for them). What each frame sees then depends on flight time alone, not on this
         machine's speed, so the run repeats to the bit. It is optimistic about local mapping

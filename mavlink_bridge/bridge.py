@@ -52,6 +52,8 @@ class BridgeStats:
     origin: tuple[float, float, float] | None = None        # EKF origin lat, lon, alt MSL
     boot_offset_s: float | None = None                      # our clock − autopilot boot time
     acks: Counter = field(default_factory=Counter)          # (command, result) → count
+    last_seq: int | None = None                             # MAVLink sequence number of the autopilot's last message
+    lost: int = 0                                           # the autopilot's messages missing from its sequence (link loss)
 
 
 def _q_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -237,17 +239,27 @@ class Bridge:
                     log.exception("handling %s failed", msg.get_type())
             self._tick(now)
 
+    def _count(self, msg) -> None:
+        """Per type, and the gaps in the autopilot's MAVLink sequence (messages lost on the link)."""
+        s, seq = self._stats, msg.get_seq()
+        s.received[msg.get_type()] += 1
+        if s.last_seq is not None:
+            s.lost += (seq - s.last_seq - 1) % 256
+        s.last_seq = seq
+
     def _from_autopilot(self, msg) -> bool:
         return msg.get_srcSystem() == self.cfg.target_system and msg.get_srcComponent() == self.cfg.target_component
 
     def _handle(self, msg, now: float) -> None:
         t = msg.get_type()
+        from_autopilot = self._from_autopilot(msg)
+        if from_autopilot:
+            self._count(msg)
         if t == "TIMESYNC" and msg.tc1 == 0:  # answer the autopilot's timesync request with our clock
             self._send(self._link.mav.timesync_encode(int(now * 1e9), msg.ts1))
             return
-        if not self._from_autopilot(msg):
+        if not from_autopilot:
             return
-        self._stats.received[t] += 1
         self._last_rx_s = now
         if t == "HEARTBEAT":
             if self._last_hb_rx_s is None or now - self._last_hb_rx_s > self.cfg.link_timeout_s:

@@ -102,6 +102,7 @@ class SimAutopilot:
         self.port = self._conn.port.getsockname()[1]
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
+        self._sent_seq: int | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._rx = Received()
@@ -196,8 +197,15 @@ class SimAutopilot:
         try:
             with self._send_lock:
                 self._conn.mav.send(msg)
+                self._sent_seq = msg.get_seq()
         except OSError:  # no peer yet / peer gone: a real autopilot just keeps streaming
             pass
+
+    def last_sent_seq(self) -> int | None:
+        """MAVLink sequence number (0–255) of the last message written to the socket; None before
+        the first. A simulated flight waits until the bridge has seen it (BridgeStats.last_seq)."""
+        with self._send_lock:
+            return self._sent_seq
 
     def _reject(self, now: float, t: str, reason: str) -> None:
         self._rx.rejections.append((now, t, reason))

@@ -12,8 +12,10 @@ without success, resetting to a fresh map (new map_id, reset_counter + 1).
 """
 from __future__ import annotations
 
+import functools
 import queue
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,11 +34,16 @@ from slam.types import AttitudePrior, CameraModel, Frame, MapUpdate, SlamPose, T
 
 class SlamSystem:
     def __init__(self, camera: CameraModel, config: SlamConfig | None = None, initial_map: LoadedMap | None = None,
-                 reloc_timeout_s: float = 15.0, keep_loaded: bool = False) -> None:
+                 reloc_timeout_s: float = 15.0, keep_loaded: bool = False, stepped: bool = False) -> None:
         """``keep_loaded``: the keyframes of ``initial_map`` are a reference (a site's survey map):
         the memory cap (``slam.max_keyframes``) never forgets them and applies to the keyframes
         this run adds. Off for a map this service saved itself, which would otherwise grow with
-        every restart."""
+        every restart.
+        ``stepped`` (offline, repeatable runs only; never live): a frame's new keyframe (or map
+        reset) goes to local mapping at the next ``wait_mapping``, not at once. Otherwise local
+        mapping starts on it while the caller still reads the map for the same frame (a snapshot
+        for fine-tuning, the tracked local map), and what those reads see depends on how fast
+        this machine ran the mapping thread meanwhile."""
         self.camera = camera
         self.config = config or SlamConfig()
         K = np.asarray(camera.K, float)
@@ -59,6 +66,8 @@ class SlamSystem:
                                   keep_loaded=keep_loaded, aligner=aligner)
         self.restored = initial_map is not None
         self._last_seq: int | None = None
+        self._stepped = stepped
+        self._deferred: list[Callable[[], None]] = []  # stepped: hand-overs to local mapping, in order
 
     def track(self, frame: Frame, prior: AttitudePrior | None = None) -> SlamPose:
         """Track one frame (hot path). ``prior``: the autopilot's attitude at the frame's capture
@@ -79,13 +88,19 @@ class SlamSystem:
             self.map_id = new_map_id()
             self._map_ids[self.reset_counter] = self.map_id
             self._current = (res.reset_map, self.map_id, self.reset_counter)
-            self.mapper.reset(res.reset_map)
+            self._to_mapping(functools.partial(self.mapper.reset, res.reset_map))
         if res.new_keyframe is not None:
-            self.mapper.insert_keyframe(res.new_keyframe)
+            self._to_mapping(functools.partial(self.mapper.insert_keyframe, res.new_keyframe))
         T_slam_cam = inv_T(res.T_cam_slam) if res.state.has_pose else np.full((4, 4), np.nan)
         return SlamPose(t_s=frame.t_s, seq=frame.seq, T_slam_cam=T_slam_cam, state=res.state,
                         reset_counter=self.reset_counter, n_inliers=res.n_inliers,
                         tracking_ms=(time.perf_counter() - t0) * 1e3, map_id=self.map_id)
+
+    def _to_mapping(self, hand_over: Callable[[], None]) -> None:
+        if self._stepped:
+            self._deferred.append(hand_over)
+        else:
+            hand_over()
 
     def _gravity(self, prior: AttitudePrior | None) -> Gravity | None:
         if not self.config.use_attitude_prior or prior is None or prior.gravity_cam is None:
@@ -173,7 +188,11 @@ class SlamSystem:
         return self.tracker.state
 
     def wait_mapping(self, timeout_s: float = 60.0) -> bool:
-        """Offline/tests only: block until queued keyframes are mapped."""
+        """Offline/tests only: block until queued keyframes are mapped (``stepped``: hand over the
+        keyframes tracked since the last call first)."""
+        for hand_over in self._deferred:
+            hand_over()
+        self._deferred.clear()
         return self.mapper.wait_idle(timeout_s)
 
     def close(self) -> None:

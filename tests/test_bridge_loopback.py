@@ -329,3 +329,31 @@ def test_gnss_solutions_are_dated_by_the_autopilots_stamp_not_their_arrival(dela
         sim.close()
     late = [t_feed - t_s for t_feed, t_s in dated[-8:]]  # after SYSTEM_TIME (1 Hz) gave the boot offset
     assert len(late) == 8 and all(abs(x - (lag_s + delay_s)) < 0.01 for x in late), late
+
+
+def _seen_last(rig, timeout_s=1.0) -> bool:
+    """The bridge has the autopilot's last message (MAVLink sequence numbers) within timeout_s."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if rig.bridge.stats().last_seq == rig.sim.last_sent_seq():
+            return True
+        time.sleep(0.001)
+    return False
+
+
+@pytest.mark.parametrize("personality", ["px4", "ardupilot"])
+def test_autopilot_sequence_numbers_show_the_last_message_and_the_lost_ones(rigs, personality):
+    """BridgeStats.last_seq is the MAVLink sequence number of the autopilot's last message (what a
+    simulated flight waits for, companion.app.fly_sim), TIMESYNC requests included; ``lost`` counts
+    the gaps in its sequence."""
+    rig = rigs(personality)
+    assert rig.fly(3.0, until=lambda: rig.bridge.stats().link_up)  # the autopilot's HEARTBEAT: 1 Hz
+    rig.fly(0.5)
+    assert rig.sim.last_sent_seq() is not None
+    assert _seen_last(rig)
+    assert rig.bridge.stats().lost == 0  # loopback loses nothing
+    with rig.sim._send_lock:  # the next 5 sequence numbers never reach the wire
+        rig.sim._conn.mav.seq = (rig.sim._conn.mav.seq + 5) % 256
+    rig.fly(0.5)
+    assert _seen_last(rig)
+    assert rig.bridge.stats().lost == 5

@@ -111,6 +111,39 @@ def test_map_updates_and_api(nominal):
     assert (z > 0).all() and (uv >= -1).all() and (uv[:, 0] <= 641).all() and (uv[:, 1] <= 481).all()
 
 
+
+@pytest.mark.parametrize("stepped", [True, False])
+def test_stepped_keyframes_reach_local_mapping_only_at_wait_mapping(nominal, stepped):
+    """Repeatable offline runs (``stepped``): a frame's new keyframe waits for ``wait_mapping``, so
+    what the caller reads from the map after ``track`` (a snapshot for fine-tuning) is the same
+    however fast the mapping thread is. Not stepped, local mapping takes it at once."""
+    import time
+
+    def counts(s):  # (map points, keyframes) as a snapshot for fine-tuning sees them
+        return len(s.map_points().point_ids), len(s.mapper.map.kf_ids())
+
+    with SlamSystem(nominal.camera, SlamConfig(), stepped=stepped) as s:
+        for i in range(N):
+            before, created = counts(s), s.map_revision()[2]
+            pose = s.track(Frame(nominal.images[i], i / 30, i))
+            if before[1] >= 2 and s.map_revision()[2] > created:  # the tracker took a keyframe after initialisation
+                break
+            s.wait_mapping()
+        else:
+            pytest.fail("no keyframe after initialisation")
+        assert pose.state.has_pose
+        t_end = time.monotonic() + (0.5 if stepped else 10.0)
+        while counts(s)[1] == before[1] and time.monotonic() < t_end:  # the mapping thread's time
+            time.sleep(0.01)
+        after = counts(s)
+        assert s.wait_mapping()
+        settled = counts(s)
+    assert settled[1] == before[1] + 1 and settled[0] > before[0]
+    if stepped:
+        assert after == before
+    else:
+        assert after[1] == before[1] + 1
+
 def test_torch_backend_tracks_as_well_as_cpu(nominal, cpu_run):
     pytest.importorskip("torch")
     short = replace(nominal, images=nominal.images[:110], T_enu_cam=nominal.T_enu_cam[:110], t_s=nominal.t_s[:110])
