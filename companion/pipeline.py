@@ -606,6 +606,7 @@ class Localizer:
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
+        self._unanchored = False  # the Globalizer's ``unanchored`` after the previous frame
         self.alignment: Alignment | None = None
         # (t_s, text): alignment timeline, the newest MAX_EVENTS (a service runs for hours)
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=MAX_EVENTS)
@@ -918,8 +919,11 @@ class Localizer:
                     self._gnss_fit = boot
                 c = pose.T_slam_cam[:3, 3]
                 # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
-                # (the older alignment has drifted away from the current pose meanwhile).
+                # (the older alignment has drifted away from the current pose meanwhile), or where
+                # the SLAM track jumped by more than that one's σ since it was adopted (its σ no
+                # longer holds: Globalizer.unanchored).
                 if boot is not None and (alignment is None or alignment.source is AlignmentSource.GNSS
+                                         or self.globalizer.unanchored
                                          or self._sigma_here_m(boot, c) <= self._sigma_here_m(alignment, c)):
                     self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
                     alignment = boot
@@ -955,8 +959,21 @@ class Localizer:
         self._settle_speed_check(pose.t_s)
         self.globalizer.hold_jumps(pose.t_s, not item.gnss_trusted)
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
+        self._after_jump(pose.t_s)
         fix = self._denial_floor(item.gnss_trusted, pose, alignment, fix)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
+
+    def _after_jump(self, t_s: float) -> None:
+        """Say so when the SLAM track has just jumped by more than the alignment's σ
+        (Globalizer.unanchored): the next GNSS fit replaces that alignment whatever its σ
+        (``process``). The fit's recency weighting (gis.align.bootstrap) lets the pairs after the
+        jump take over; dropping the earlier ones instead made the first fit wait ~7 s for enough
+        new pairs (test_while_gnss_is_trusted_a_slam_jump_hands_the_alignment_back_to_the_gnss_fit)."""
+        unanchored = self.globalizer.unanchored
+        if unanchored and not self._unanchored:
+            self._note((t_s, f"SLAM track jumped {self.globalizer.jump_m(t_s):.2f} m, more than the alignment's σ: "
+                             f"its σ no longer holds until a new alignment"))
+        self._unanchored = unanchored
 
     def _fresh_gnss_fit(self, pose: SlamPose) -> Alignment | None:
         """The newest GNSS fit if it is of this pose's map and at most GEOREF_MAX_FIT_AGE_S old."""

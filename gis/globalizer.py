@@ -23,6 +23,10 @@ denial nothing independent does (a GIS registration converges next to its prior,
 "Registrations replayed offline"), so while the Localizer holds the term (``hold_jumps``) it does
 not decay: an 8 m jump at a `loop` flight's GNSS loss left every later fix 7–10 m off while the
 decayed term let the claim fall to 1.4 m within 12 s (docs/BENCHMARKS.md, "Long denials: honest by default").
+Nor does it decay after a jump larger than the alignment's own σ at the fix until a new alignment
+is adopted (``unanchored``): while GNSS was trusted, a 5 m jump after a relocalisation left a GIS
+registration 5 m off, its smaller σ kept the GNSS fits out, and the decayed claim (1.2 m) made the
+bridge take the disagreement for spoofing (docs/BENCHMARKS.md, "A SLAM jump while GNSS is trusted").
 """
 from __future__ import annotations
 
@@ -59,6 +63,8 @@ class Globalizer:
         self._v_ecef: np.ndarray | None = None           # smoothed fix velocity (ECEF m/s) under _prev's alignment
         self._jump: tuple[float, float] = (0.0, 0.0)     # (t_s, m) of the largest recent innovation
         self._hold_jumps = False                         # no decay (``hold_jumps``)
+        self._unanchored = False                         # no decay: a jump beyond the alignment's σ since it was adopted
+        self._reanchored = False                         # a new alignment since: release at the next fix
 
     @classmethod
     def from_config(cls, T_body_cam: np.ndarray, config: AlignmentConfig) -> "Globalizer":
@@ -77,16 +83,34 @@ class Globalizer:
             self._prev = None
             self._v_ecef = None
             self._jump = (0.0, 0.0)
+            self._unanchored = self._reanchored = False
+
+    @property
+    def unanchored(self) -> bool:
+        """The SLAM track jumped by more than the alignment's σ since the alignment was adopted:
+        the alignment no longer holds to its σ (the jump term stands in for it, undecayed)."""
+        return self._unanchored
+
+    def jump_m(self, t_s: float) -> float:
+        """The SLAM-jump term a fix at ``t_s`` would carry (without a new jump)."""
+        with self._lock:
+            return self._decayed_m(t_s)
 
     def hold_jumps(self, t_s: float, hold: bool) -> None:
         """While held (GNSS not trusted: nothing re-anchors the track), the SLAM-jump term keeps the
         value it has at ``t_s`` and grows with new jumps, but does not decay; released, it decays
         from ``t_s`` on (module doc)."""
         with self._lock:
-            if hold == self._hold_jumps:
-                return
-            self._jump = (t_s, self._decayed_m(t_s))
-            self._hold_jumps = hold
+            self._set_hold(t_s, hold, self._unanchored)
+
+    def _set_hold(self, t_s: float, denied: bool, unanchored: bool) -> None:
+        """Change the reasons to hold the jump term; the term is re-based at ``t_s`` when whether
+        it decays changes (call with the lock held)."""
+        was = self._hold_jumps or self._unanchored
+        value = self._decayed_m(t_s)
+        self._hold_jumps, self._unanchored = denied, unanchored
+        if (denied or unanchored) != was:
+            self._jump = (t_s, value)
 
     def update_alignment(self, a: Alignment, follows: Alignment | None = None) -> None:
         """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe).
@@ -103,6 +127,8 @@ class Globalizer:
             self._cov_center = (c_ecef, R_ecef_enuC, cov6)
             if follows is not None and self._prev is not None and self._prev[2] is follows:
                 self._prev = (*self._prev[:2], a)
+            elif self._unanchored:  # a new alignment: the jump's term decays from the next fix on
+                self._reanchored = True
 
     def fix(self, pose: SlamPose) -> GlobalFix | None:
         with self._lock:
@@ -118,7 +144,15 @@ class Globalizer:
         R_ned_ecef = R_NED_ENU @ frame.R_ecef_enu.T
         R_ned_body = R_ned_ecef @ T_ecef_body[:3, :3]
         step = self._step(pose.t_s, p, a)
-        cov_ned = self._cov_ned(p, a, cc, R_ned_ecef) + self._jump_m(pose.t_s, step) ** 2 * np.eye(3)
+        cov_ned = self._cov_ned(p, a, cc, R_ned_ecef)
+        with self._lock:
+            if self._reanchored:
+                self._reanchored = False
+                self._set_hold(pose.t_s, self._hold_jumps, False)
+            jump_m, now_m = self._jump_m(pose.t_s, step)
+            if not self._unanchored and now_m > math.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1]):
+                self._set_hold(pose.t_s, self._hold_jumps, True)
+        cov_ned = cov_ned + jump_m ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
         v_ned, speed_acc = self._velocity(step, R_ned_ecef)
         return GlobalFix(
@@ -154,10 +188,11 @@ class Globalizer:
         dt = t_s - prev[0]
         return dt, (p - prev[1]) / dt
 
-    def _jump_m(self, t_s: float, step: tuple[float, np.ndarray] | None) -> float:
+    def _jump_m(self, t_s: float, step: tuple[float, np.ndarray] | None) -> tuple[float, float]:
         """The SLAM-jump term (module doc): the distance of this fix from the constant-velocity
         prediction of the previous fixes (``step``: _step's), or the largest earlier one decayed by
-        exp(−Δt / JUMP_MEMORY_S) (not decayed while held: ``hold_jumps``), whichever is larger."""
+        exp(−Δt / JUMP_MEMORY_S) (not decayed while held: ``hold_jumps``, ``unanchored``),
+        whichever is larger; and that distance itself."""
         now_m = 0.0
         if step is None:
             self._v_ecef = None
@@ -169,13 +204,14 @@ class Globalizer:
         decayed_m = self._decayed_m(t_s)
         if now_m >= decayed_m:
             self._jump = (t_s, now_m)
-            return now_m
-        return decayed_m
+            return now_m, now_m
+        return decayed_m, now_m
 
     def _decayed_m(self, t_s: float) -> float:
         """The recorded jump term at t_s: decayed since it was recorded, or as it is while held."""
         t_j, j_m = self._jump
-        return j_m if self._hold_jumps else j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
+        held = self._hold_jumps or self._unanchored
+        return j_m if held else j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
 
     def _velocity(self, step: tuple[float, np.ndarray] | None, R_ned_ecef: np.ndarray):
         """NED velocity and its 1-σ from _step's fix-to-fix difference (None, None without one)."""
