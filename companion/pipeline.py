@@ -906,7 +906,12 @@ class Localizer:
                 if alignment is not None:
                     nu_ecef = pair.p_ecef - alignment.T_ecef_slam.apply(pair.p_slam[None])[0]
                     with self._lock:
-                        usable = self.gnss_check.update(pair.t_s, (pair.R_ecef_enu.T @ nu_ecef)[:2])
+                        if self._unanchored and not self.gnss_check.inconsistent:
+                            # our track jumped (_after_jump): no reference to judge GNSS by until
+                            # a new alignment; the check starts again from the first pair after it
+                            self.gnss_check.reset()
+                        else:
+                            usable = self.gnss_check.update(pair.t_s, (pair.R_ecef_enu.T @ nu_ecef)[:2])
                 if usable and item.gnss_trusted:
                     self.bootstrap.append(pair)
                     self._learn_baro_offset(pair, item.prior)
@@ -964,15 +969,21 @@ class Localizer:
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 
     def _after_jump(self, t_s: float) -> None:
-        """Say so when the SLAM track has just jumped by more than the alignment's σ
-        (Globalizer.unanchored): the next GNSS fit replaces that alignment whatever its σ
-        (``process``). The fit's recency weighting (gis.align.bootstrap) lets the pairs after the
-        jump take over; dropping the earlier ones instead made the first fit wait ~7 s for enough
-        new pairs (test_while_gnss_is_trusted_a_slam_jump_hands_the_alignment_back_to_the_gnss_fit)."""
+        """The SLAM track has just jumped by more than the alignment's σ (Globalizer.unanchored;
+        a relocalisation into a part of the map that disagrees with the rest): until a new
+        alignment, (1) the next GNSS fit replaces the current one whatever its σ (``process``);
+        (2) the GNSS pairs from before the jump are dropped, so that fit is made of pairs after it
+        (a fit mixing both, 1 s after a 9 m jump in `loop` seed 6, left the fixes 8.8 m off);
+        (3) GnssConsistency does not judge GNSS by our track (``process``): the jump moved every
+        innovation by its size, and past the gate (5 m) the check took GNSS for spoofed 2 s
+        later (same flight, 184.3 s). A spoofer would have to start within the seconds between a
+        SLAM jump and the next fit; the bridge's own GNSS/vision test still runs, with the jump
+        in the fix's σ."""
         unanchored = self.globalizer.unanchored
         if unanchored and not self._unanchored:
+            self.bootstrap.clear()
             self._note((t_s, f"SLAM track jumped {self.globalizer.jump_m(t_s):.2f} m, more than the alignment's σ: "
-                             f"its σ no longer holds until a new alignment"))
+                             f"GNSS pairs from before it dropped, GNSS not judged by vision until a new alignment"))
         self._unanchored = unanchored
 
     def _fresh_gnss_fit(self, pose: SlamPose) -> Alignment | None:
