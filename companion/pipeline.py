@@ -925,7 +925,7 @@ class Localizer:
                 c = pose.T_slam_cam[:3, 3]
                 # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
                 # (the older alignment has drifted away from the current pose meanwhile), or where
-                # the SLAM track jumped by more than that one's σ since it was adopted (its σ no
+                # the SLAM track jumped by more than 3× that one's σ since it was adopted (its σ no
                 # longer holds: Globalizer.unanchored).
                 if boot is not None and (alignment is None or alignment.source is AlignmentSource.GNSS
                                          or self.globalizer.unanchored
@@ -969,7 +969,7 @@ class Localizer:
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 
     def _after_jump(self, t_s: float) -> None:
-        """The SLAM track has just jumped by more than the alignment's σ (Globalizer.unanchored;
+        """The SLAM track has just jumped by more than 3× the alignment's σ (Globalizer.unanchored;
         a relocalisation into a part of the map that disagrees with the rest): until a new
         alignment, (1) the next GNSS fit replaces the current one whatever its σ (``process``);
         (2) the GNSS pairs from before the jump are dropped, so that fit is made of pairs after it
@@ -982,7 +982,7 @@ class Localizer:
         unanchored = self.globalizer.unanchored
         if unanchored and not self._unanchored:
             self.bootstrap.clear()
-            self._note((t_s, f"SLAM track jumped {self.globalizer.jump_m(t_s):.2f} m, more than the alignment's σ: "
+            self._note((t_s, f"SLAM track jumped {self.globalizer.jump_m(t_s):.2f} m, beyond 3× the alignment's σ: "
                              f"GNSS pairs from before it dropped, GNSS not judged by vision until a new alignment"))
         self._unanchored = unanchored
 

@@ -23,8 +23,8 @@ denial nothing independent does (a GIS registration converges next to its prior,
 "Registrations replayed offline"), so while the Localizer holds the term (``hold_jumps``) it does
 not decay: an 8 m jump at a `loop` flight's GNSS loss left every later fix 7–10 m off while the
 decayed term let the claim fall to 1.4 m within 12 s (docs/BENCHMARKS.md, "Long denials: honest by default").
-Nor does it decay after a jump larger than the alignment's own σ at the fix until a new alignment
-is adopted (``unanchored``): while GNSS was trusted, a 5 m jump after a relocalisation left a GIS
+Nor does it decay after a jump larger than 3× the alignment's own σ at the fix (UNANCHOR_SIGMAS)
+until a new alignment is adopted (``unanchored``): while GNSS was trusted, a 5 m jump after a relocalisation left a GIS
 registration 5 m off, its smaller σ kept the GNSS fits out, and the decayed claim (1.2 m) made the
 bridge take the disagreement for spoofing (docs/BENCHMARKS.md, "A SLAM jump while GNSS is trusted").
 """
@@ -46,6 +46,7 @@ from slam.types import SlamPose
 
 JUMP_MEMORY_S = 5.0     # e-folding time of a SLAM jump's term in the fix covariance
 VELOCITY_SMOOTHING = 0.3  # weight of the newest fix-to-fix velocity in the prediction (exponential)
+UNANCHOR_SIGMAS = 3.0   # a jump beyond this many of the alignment's own horizontal σ at the fix unanchors it
 
 
 class Globalizer:
@@ -63,7 +64,7 @@ class Globalizer:
         self._v_ecef: np.ndarray | None = None           # smoothed fix velocity (ECEF m/s) under _prev's alignment
         self._jump: tuple[float, float] = (0.0, 0.0)     # (t_s, m) of the largest recent innovation
         self._hold_jumps = False                         # no decay (``hold_jumps``)
-        self._unanchored = False                         # no decay: a jump beyond the alignment's σ since it was adopted
+        self._unanchored = False                         # no decay: a jump beyond 3× the alignment's σ since it was adopted
         self._reanchored = False                         # a new alignment since: release at the next fix
 
     @classmethod
@@ -87,7 +88,7 @@ class Globalizer:
 
     @property
     def unanchored(self) -> bool:
-        """The SLAM track jumped by more than the alignment's σ since the alignment was adopted:
+        """The SLAM track jumped by more than UNANCHOR_SIGMAS × the alignment's σ since the alignment was adopted:
         the alignment no longer holds to its σ (the jump term stands in for it, undecayed)."""
         return self._unanchored
 
@@ -150,7 +151,7 @@ class Globalizer:
                 self._reanchored = False
                 self._set_hold(pose.t_s, self._hold_jumps, False)
             jump_m, now_m = self._jump_m(pose.t_s, step)
-            if not self._unanchored and now_m > math.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1]):
+            if not self._unanchored and now_m > UNANCHOR_SIGMAS * math.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1]):
                 self._set_hold(pose.t_s, self._hold_jumps, True)
         cov_ned = cov_ned + jump_m ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()

@@ -900,7 +900,7 @@ def test_in_a_denial_the_fixes_claim_no_better_than_the_distance_flown_allows():
 def test_in_a_denial_a_slam_jump_widens_every_later_fix_not_only_the_next_seconds():
     """The Globalizer's SLAM-jump term decays over JUMP_MEMORY_S once something re-anchors the
     track (a new alignment) while GNSS is trusted; until then (``unanchored``: the jump, 5 m, is
-    larger than the alignment's σ) and while GNSS is not trusted (the Localizer holds it) it does
+    larger than 3× the alignment's σ) and while GNSS is not trusted (the Localizer holds it) it does
     not: `loop` seed 6 (2026-12-06): an 8 m jump at the loss, fixes 7–10 m off for the next 30 s;
     another realisation: a 5 m jump while GNSS was trusted, the claim decayed to 1.2 m with the fix
     5 m off, and the bridge took GNSS for spoofed. Here a registration-like new alignment (same
