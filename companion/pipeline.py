@@ -982,7 +982,7 @@ class Localizer:
         unanchored = self.globalizer.unanchored
         if unanchored and not self._unanchored:
             self.bootstrap.clear()
-            self._note((t_s, f"SLAM track jumped {self.globalizer.jump_m(t_s):.2f} m, beyond 3× the alignment's σ: "
+            self._note((t_s, f"SLAM track jumped {self.globalizer.unanchoring_jump_m:.2f} m, beyond 3× the alignment's σ: "
                              f"GNSS pairs from before it dropped, GNSS not judged by vision until a new alignment"))
         self._unanchored = unanchored
 

@@ -66,6 +66,7 @@ class Globalizer:
         self._hold_jumps = False                         # no decay (``hold_jumps``)
         self._unanchored = False                         # no decay: a jump beyond 3× the alignment's σ since it was adopted
         self._reanchored = False                         # a new alignment since: release at the next fix
+        self._unanchoring_jump_m = 0.0                   # the jump that set _unanchored
 
     @classmethod
     def from_config(cls, T_body_cam: np.ndarray, config: AlignmentConfig) -> "Globalizer":
@@ -92,10 +93,10 @@ class Globalizer:
         the alignment no longer holds to its σ (the jump term stands in for it, undecayed)."""
         return self._unanchored
 
-    def jump_m(self, t_s: float) -> float:
-        """The SLAM-jump term a fix at ``t_s`` would carry (without a new jump)."""
-        with self._lock:
-            return self._decayed_m(t_s)
+    @property
+    def unanchoring_jump_m(self) -> float:
+        """The jump (metres) that unanchored the alignment; 0 while it is anchored."""
+        return self._unanchoring_jump_m if self._unanchored else 0.0
 
     def hold_jumps(self, t_s: float, hold: bool) -> None:
         """While held (GNSS not trusted: nothing re-anchors the track), the SLAM-jump term keeps the
@@ -153,6 +154,7 @@ class Globalizer:
             jump_m, now_m = self._jump_m(pose.t_s, step)
             if not self._unanchored and now_m > UNANCHOR_SIGMAS * math.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1]):
                 self._set_hold(pose.t_s, self._hold_jumps, True)
+                self._unanchoring_jump_m = now_m
         cov_ned = cov_ned + jump_m ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
         v_ned, speed_acc = self._velocity(step, R_ned_ecef)
