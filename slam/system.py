@@ -41,9 +41,9 @@ class SlamSystem:
         every restart.
         ``stepped`` (offline, repeatable runs only; never live): a frame's new keyframe (or map
         reset) goes to local mapping at the next ``wait_mapping``, not at once. Otherwise local
-        mapping starts on it while the caller still reads the map for the same frame (a snapshot
-        for fine-tuning, the tracked local map), and what those reads see depends on how fast
-        this machine ran the mapping thread meanwhile."""
+        mapping starts on it while the caller still reads the map for the same frame (a
+        ``map_points`` snapshot for fine-tuning), and what that read sees depends on how far this
+        machine ran the mapping thread meanwhile."""
         self.camera = camera
         self.config = config or SlamConfig()
         K = np.asarray(camera.K, float)
