@@ -606,7 +606,7 @@ class Localizer:
         self.bootstrap = bootstrap if bootstrap is not None else BootstrapCollector()
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
-        self._unanchored = False  # the Globalizer's ``unanchored`` after the previous frame
+        self._unanchored = False  # the Globalizer's ``unanchored`` after the previous frame (_after_jump: its onset)
         self.alignment: Alignment | None = None
         # (t_s, text): alignment timeline, the newest MAX_EVENTS (a service runs for hours)
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=MAX_EVENTS)
@@ -906,7 +906,7 @@ class Localizer:
                 if alignment is not None:
                     nu_ecef = pair.p_ecef - alignment.T_ecef_slam.apply(pair.p_slam[None])[0]
                     with self._lock:
-                        if self._unanchored and not self.gnss_check.inconsistent:
+                        if self.globalizer.unanchored and not self.gnss_check.inconsistent:
                             # our track jumped (_after_jump): no reference to judge GNSS by until
                             # a new alignment; the check starts again from the first pair after it
                             self.gnss_check.reset()

@@ -408,7 +408,8 @@ def test_while_gnss_is_trusted_a_slam_jump_hands_the_alignment_back_to_the_gnss_
     # as exact everywhere as it claims (no drift, no scale error): only the jump can spoil it
     a0 = dataclasses.replace(_prior_about(_CirclingSlam.cam_enu(0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), sigma_t_m=0.05,
                                           source=AlignmentSource.FINE), scale_sigma=0.0, drift_free_radius_m=1e4)
-    loc = Localizer(_Jumping(np.zeros((0, 3))), None, Globalizer(np.eye(4)), initial_alignment=a0, bootstrap=BootstrapCollector(T_body_cam=np.eye(4)))
+    loc = Localizer(_Jumping(np.zeros((0, 3))), None, Globalizer(np.eye(4)), initial_alignment=a0,
+                    bootstrap=BootstrapCollector(T_body_cam=np.eye(4)))
     try:
         fixes = _fly_circle(loc, 60.0, 60.0, np.random.default_rng(4), record_from_s=5.0)
     finally:

@@ -111,7 +111,6 @@ def test_map_updates_and_api(nominal):
     assert (z > 0).all() and (uv >= -1).all() and (uv[:, 0] <= 641).all() and (uv[:, 1] <= 481).all()
 
 
-
 @pytest.mark.parametrize("stepped", [True, False])
 def test_stepped_keyframes_reach_local_mapping_only_at_wait_mapping(nominal, stepped):
     """Repeatable offline runs (``stepped``): a frame's new keyframe waits for ``wait_mapping``, so
