@@ -100,6 +100,30 @@ def sim3_scale(S: np.ndarray) -> float:
     return float(np.cbrt(np.linalg.det(S[:3, :3])))
 
 
+def sim3_share(S: np.ndarray, alpha: float, center: np.ndarray) -> np.ndarray:
+    """The share ``alpha`` (0 … 1) of the similarity S, taken about the point ``center``: scale
+    s^α, rotation by α of S's angle about the same axis, and α of the move S gives ``center``
+    itself. α = 0 is the identity, α = 1 is S, and the result changes smoothly with α.
+
+    A loop correction S is measured at the loop's end (``center``: the keyframe that closed it);
+    the keyframes along the loop get a share of it by their distance along the loop, so the map
+    stays continuous between the corrected end and the untouched start. ORB-SLAM spreads it with a
+    pose-graph optimisation over its essential graph; this linear share is that optimisation's
+    first-order stand-in (the BA windows that follow refine it). About ``center`` rather than the
+    SLAM origin so that the share of the translation is the share of the move at the loop, not an
+    artefact of where the map's origin lies.
+    """
+    s = sim3_scale(S)
+    rotvec = Rotation.from_matrix(S[:3, :3] / s).as_rotvec()
+    sR = s ** alpha * Rotation.from_rotvec(alpha * rotvec).as_matrix()
+    c = np.asarray(center, float)
+    c_new = c + alpha * (S[:3, :3] @ c + S[:3, 3] - c)
+    out = np.eye(4)
+    out[:3, :3] = sR
+    out[:3, 3] = c_new - sR @ c
+    return out
+
+
 def correct_pose_by_sim3(T_cam_slam: np.ndarray, S_new_old: np.ndarray) -> np.ndarray:
     """Rigid camera pose after the map is moved by the similarity ``p_new = S p_old``.
 

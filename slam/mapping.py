@@ -17,7 +17,7 @@ import numpy as np
 
 from slam.ba import BAProblem, BAResult, ba_worker, bundle_adjust
 from slam.config import SlamConfig
-from slam.geometry import correct_pose_by_sim3, parallax_deg, project, ransac_sim3, triangulate
+from slam.geometry import correct_pose_by_sim3, parallax_deg, project, ransac_sim3, sim3_share, triangulate
 from slam.map import Keyframe, MapSize, SlamMap
 from slam.matching import TH_LOW, candidates_by_projection, match_bf
 from slam.patches import PatchAligner
@@ -265,6 +265,47 @@ def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protec
     if aligner is not None:
         align_observations(aligner, m, kf, [(f, p) for f, p in joined if p in m.points])
     return len(joined), fused
+
+
+def loop_shares(m: SlamMap, loop: list[int], window: set[int], S: np.ndarray, center: np.ndarray,
+                 loaded_upto: int) -> dict[int, np.ndarray]:
+    """Loop correction for the keyframes inside the loop that the correction's window leaves
+    out: keyframe ids ``loop`` run from the old keyframe (untouched) to the current one (moved by
+    S with ``window``). Each of the others gets the share of S (slam.geometry.sim3_share, about
+    ``center``) of its distance along the loop's camera path, so the loop's middle follows both
+    ends. Without this only the window moved: the keyframes just before it kept the drifted
+    coordinates beside the corrected ones, and on the `loop` flight's second lap the tracker
+    met both, relocalised, and drifted off the first lap again (5-20 m, loops re-closed every
+    10-20 s; docs/BENCHMARKS.md "Loop closing keeps the whole loop continuous"). A loaded map's
+    keyframes (id <= loaded_upto) never move. Caller holds m.lock."""
+    inner = [k for k in loop[1:-1] if k not in window and k > loaded_upto]
+    if not inner:
+        return {}
+    C = np.array([m.keyframes[k].center for k in loop])
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
+    if along[-1] <= 0:
+        return {}
+    share = dict(zip(loop, (along / along[-1]).tolist()))
+    return {k: sim3_share(S, share[k], center) for k in inner}
+
+
+def move_by_corrections(m: SlamMap, corrections: dict[int, np.ndarray], protect_upto: int = -1) -> None:
+    """Move each keyframe of ``corrections`` (kf id → similarity, p_new = S p_old) and each of
+    their points by its reference keyframe's correction (ORB-SLAM's CorrectLoop); a point whose
+    reference keyframe has none stays, and so does a loaded map's (id <= ``protect_upto``).
+    Caller holds m.lock."""
+    moved: set[int] = set()
+    for k, S_k in corrections.items():
+        kfk = m.keyframes[k]
+        kfk.T_cam_slam = correct_pose_by_sim3(kfk.T_cam_slam, S_k)
+        for pid in kfk.point_ids[kfk.point_ids >= 0].tolist():
+            if pid in moved or pid not in m.points or pid <= protect_upto:
+                continue
+            moved.add(pid)
+            p = m.points[pid]
+            S_p = corrections.get(p.first_kf)
+            if S_p is not None:
+                p.p_slam = S_p[:3, :3] @ p.p_slam + S_p[:3, 3]
 
 
 def align_observations(aligner: PatchAligner, m: SlamMap, kf: Keyframe, obs: list[tuple[int, int]]) -> int:
@@ -774,7 +815,9 @@ class LocalMapper:
 
     def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> bool:
         """Move the current keyframe and its covisible recent keyframes by S (ORB-SLAM's loop
-        correction neighbourhood), fuse the matched points, then BA: Algorithm 1 (recursive) or the
+        correction neighbourhood) and the keyframes between them and the old one by a share of S
+        (``loop_shares``), each point with its reference keyframe; fuse the matched points, then
+        BA: Algorithm 1 (recursive) or the
         whole loop at once (full) — same starting state, so the two are comparable. With a map
         loaded from disk, its keyframes and points never move (its alignment registers them where
         they are): they stay out of the moved window and survive every fusion, and a loop from a
@@ -799,15 +842,9 @@ class LocalMapper:
             window = {k for k in ids[max(cur - w, start + 1):cur]
                       if k > self._loaded_upto and len(own & set(m.keyframes[k].point_ids.tolist())) >= c.loop_min_inliers // 2}
             window.add(kf.kf_id)
-            moved: set[int] = set()
-            for k in window:
-                kfk = m.keyframes[k]
-                kfk.T_cam_slam = correct_pose_by_sim3(kfk.T_cam_slam, S)
-                for pid in kfk.point_ids[kfk.point_ids >= 0].tolist():
-                    if pid not in moved and pid in m.points and set(m.points[pid].obs) <= window:
-                        moved.add(pid)
-                        p = m.points[pid]
-                        p.p_slam = S[:3, :3] @ p.p_slam + S[:3, 3]
+            corrections = {k: S for k in window}
+            corrections.update(loop_shares(m, ids[start:cur + 1], window, S, kf.center, self._loaded_upto))
+            move_by_corrections(m, corrections, self._loaded_pt_upto)
             for new_pid, old_pid in self._loop_pairs:
                 if new_pid > self._loaded_pt_upto:  # (a loaded point is never the one fused away)
                     m.replace_point(new_pid, old_pid)
