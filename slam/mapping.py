@@ -817,13 +817,12 @@ class LocalMapper:
         """Move the current keyframe and its covisible recent keyframes by S (ORB-SLAM's loop
         correction neighbourhood) and the keyframes between them and the old one by a share of S
         (``loop_shares``), each point with its reference keyframe; fuse the matched points, then
-        BA: Algorithm 1 (recursive) or the
-        whole loop at once (full) — same starting state, so the two are comparable. With a map
-        loaded from disk, its keyframes and points never move (its alignment registers them where
-        they are): they stay out of the moved window and survive every fusion, and a loop from a
-        keyframe that sees them to one of the flight's own is not closed (False): the current
-        keyframe is held by the loaded map already, and the correction would pull it towards the
-        flight's drifted part, off the map its alignment registers."""
+        BA: Algorithm 1 (recursive) or the whole loop at once (full) — same starting state, so the
+        two are comparable. With a map loaded from disk, its keyframes and points never move (its
+        alignment registers them where they are): they stay out of the moved window and survive
+        every fusion, and a loop from a keyframe that sees them to one of the flight's own is not
+        closed (False): the current keyframe is held by the loaded map already, and the correction
+        would pull it towards the flight's drifted part, off the map its alignment registers."""
         c = self.config
         w = c.local_window
         m = self.map

@@ -99,7 +99,6 @@ def test_pose_correction_keeps_pixels_when_map_moves_by_sim3():
     np.testing.assert_allclose(uv1, uv0, atol=1e-8)
 
 
-
 def test_a_loop_correction_gives_the_loops_middle_its_share_so_no_step_opens_in_the_map():
     """A loop of 48 keyframes around a 60 m circle, flown with a heading drift of 0.1° and a
     scale drift of 0.2 % a keyframe, closes back at its start. The loop's S moves the window
@@ -148,6 +147,7 @@ def test_a_loop_correction_gives_the_loops_middle_its_share_so_no_step_opens_in_
         below = m.keyframes[k].T_cam_slam[:3, :3] @ p + m.keyframes[k].T_cam_slam[:3, 3]
         scale = (sim3_scale(corrections[k]) if k in corrections else 1.0) * s_d[k]
         np.testing.assert_allclose(below, [0.0, 0.0, -30.0 * scale], atol=1e-6)
+
 
 # --- two-view initialization ----------------------------------------------------------------------
 
