@@ -170,7 +170,8 @@ def test_globalizer_widens_the_accuracy_after_a_slam_jump():
     """A camera moving at a steady 7 m/s (10 fps) keeps the accuracy the alignment gives it; when
     the SLAM track jumps 2 m in one frame (local mapping refreshed the points it follows), the fix
     claims about that much more (added in quadrature), decaying over JUMP_MEMORY_S. Across an
-    alignment change nothing is predicted, so a new alignment's shift is not taken for a jump."""
+    alignment change the previous pose is placed with the new alignment: its shift is not taken
+    for a jump, and a jump in the frame it arrives is not hidden by it."""
     from gis.globalizer import JUMP_MEMORY_S
 
     a = _perturbed()
@@ -201,6 +202,14 @@ def test_globalizer_widens_the_accuracy_after_a_slam_jump():
     T[0, 3] = x + step_slam
     pose = SlamPose(20.0, 200, T, TrackingState.OK, 0)
     assert g.fix(pose).h_acc_m == pytest.approx(np.hypot(globalizer(shifted).fix(pose).h_acc_m, extra[199] * np.exp(-0.02)), rel=0.01)
+    g2 = globalizer(a)
+    for k in range(30):
+        T[0, 3] = k * step_slam + (2.0 / a.T_ecef_slam.scale if k == 29 else 0.0)
+        if k == 29:
+            g2.update_alignment(shifted)  # a new alignment in the frame the track jumps 2 m
+        fix = g2.fix(SlamPose(k / 10, k, T, TrackingState.OK, 0))
+    alone = globalizer(shifted).fix(SlamPose(2.9, 29, T, TrackingState.OK, 0)).h_acc_m
+    assert np.sqrt(fix.h_acc_m**2 - alone**2) == pytest.approx(2.0, abs=0.05)
 
 
 def test_globalizer_against_truth_on_simulated_flight(city):
