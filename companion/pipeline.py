@@ -559,6 +559,7 @@ SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this 
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 FOLLOW_MIN_M = 0.05  # a move of the alignment's points is followed once it shifts the fix this much
 FOLLOW_EVENT_M = 0.3  # ... and goes into the alignment timeline from this much on
+CARRY_SIGMA_FRACTION = 0.5  # a registration carried by a move it cannot test: + this × the move (1-σ; a wrong carry is 2σ off)
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
 
@@ -618,6 +619,7 @@ class Localizer:
         self.rebootstrap_every = 30  # frames between GNSS re-fits while GNSS is trusted
         self._last_pose: SlamPose | None = None
         self._cloud: _Cloud | None = None      # the current alignment's points (_follow_map)
+        self._lm_prev = None                   # the local map the previous frame's pose was solved against
         self._submitted: _Cloud | None = None  # the last registration's points, as submitted
         self._tuner = tuner
         # the GIS model's georeference against GNSS (gis.align.georef): the newest GNSS fit, and
@@ -636,15 +638,25 @@ class Localizer:
         if initial_alignment is not None:
             self._accept(initial_alignment, "initial")
 
-    def _follow_map(self, pose: SlamPose, alignment: Alignment) -> Alignment:
+    def _follow_map(self, pose: SlamPose, alignment: Alignment, lm, lm_prev) -> Alignment:
         """Carry a registration along when local mapping moves its points (module doc, "Alignments
         follow their points"). A registration keeps the SLAM points it was computed on (_Cloud:
         the submitted map points in its crop). When the local map the pose was solved against
-        holds some of them elsewhere, the similarity S from their old to their new positions
-        (Umeyama 1991; points it does not hold count as unmoved) makes the alignment
+        (``lm``) holds some of them elsewhere, the similarity S from their old to their new
+        positions (Umeyama 1991; points it does not hold count as unmoved) makes the alignment
         T_ecef_slam ∘ S⁻¹ and its centre S·center_slam; followed once that shifts this frame's fix
         by FOLLOW_MIN_M. GNSS fits (refitted every few seconds), offline and restored alignments
-        have no points of ours and are not followed."""
+        have no points of ours and are not followed.
+
+        Only a move between the previous frame's local map (``lm_prev``) and this one is handed to
+        the Globalizer as the same alignment carried along: its fixes continuous, and the move
+        tested by the Globalizer's SLAM-jump term (if the tracked pose did not move with the
+        points, the fix jumps). A registration that arrives now is first carried to ``lm_prev`` as
+        the new alignment it is, since the previous pose was solved against that map. What the map
+        moved while the registration was computed cannot be tested against the track any more,
+        so that carry widens it by CARRY_SIGMA_FRACTION of the move at the camera (`loop` seed 5
+        with full loop closing: a registration carried 2.8 m in the frame it arrived, the track
+        steady, fixes 2.7 m off claiming 0.72 m, the move never tested)."""
         if not pose.state.has_pose:
             return alignment
         cloud = self._cloud
@@ -653,9 +665,19 @@ class Localizer:
             if sub is None or alignment.source is not AlignmentSource.FINE or alignment.t_s != sub.t_s:
                 self._cloud = None  # not a registration of ours: its points are not known
                 return alignment
-            cloud = self._cloud = _Cloud(alignment, sub.point_ids, sub.p_slam)
-        lm = self.slam.tracked_local_map()
-        if lm is None or lm.version == cloud.version or len(lm.point_ids) == 0:
+            self._cloud = _Cloud(alignment, sub.point_ids, sub.p_slam)
+            first = lm_prev if lm_prev is not None else lm
+            alignment = self._carry(pose, alignment, first, follows=False, widen=True)
+            if first is lm:
+                return alignment
+        return self._carry(pose, alignment, lm, follows=True)
+
+    def _carry(self, pose: SlamPose, alignment: Alignment, lm, follows: bool, widen: bool = False) -> Alignment:
+        """_follow_map's step: the current registration (self._cloud) carried to local map ``lm``;
+        handed to the Globalizer as the alignment it follows (``follows``) or as a new one,
+        widened by CARRY_SIGMA_FRACTION of its move at the camera (``widen``)."""
+        cloud = self._cloud
+        if cloud is None or lm is None or lm.version == cloud.version or len(lm.point_ids) == 0:
             return alignment
         cloud.version = lm.version
         k = np.minimum(np.searchsorted(lm.point_ids, cloud.point_ids), len(lm.point_ids) - 1)
@@ -675,15 +697,18 @@ class Localizer:
             return alignment
         followed = replace(alignment, T_ecef_slam=alignment.T_ecef_slam @ S_inv,
                            center_slam=S_inv.inverse().apply(np.asarray(alignment.center_slam, float)))
+        if widen:
+            followed = inflate_alignment(followed, CARRY_SIGMA_FRACTION * moved_m)
         with self._lock:
             if self.alignment is not alignment:  # the worker adopted a new one meanwhile
                 return self.alignment
             self.alignment = followed
-            self.globalizer.update_alignment(followed, follows=alignment)
+            self.globalizer.update_alignment(followed, follows=alignment if follows else None)
         self._cloud = _Cloud(followed, cloud.point_ids, p_now, lm.version)
         if moved_m >= FOLLOW_EVENT_M:
             self._note((pose.t_s, f"alignment follows its points: {int(held.sum())} of {len(held)} moved "
-                                   f"by local mapping, the fix by {moved_m:.2f} m"))
+                                   f"by local mapping, the fix by {moved_m:.2f} m"
+                                   + (f" (while it was computed: σ + {CARRY_SIGMA_FRACTION * moved_m:.2f} m)" if widen else "")))
         return followed
 
     def _accept(self, alignment: Alignment, why: str) -> None:
@@ -885,8 +910,10 @@ class Localizer:
             # refuses fixes for another map by itself).
             self._drop_alignment(pose.t_s, "SLAM map changed: alignment dropped")
             alignment = None
+        lm = self.slam.tracked_local_map() if pose.state.has_pose else None
         if alignment is not None:
-            alignment = self._follow_map(pose, alignment)
+            alignment = self._follow_map(pose, alignment, lm, self._lm_prev)
+        self._lm_prev = lm
         if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
             v = item.gnss.vel_ned_mps
             speed = float(np.hypot(v[0], v[1])) if v is not None else None

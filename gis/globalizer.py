@@ -63,6 +63,7 @@ class Globalizer:
         # (t_s, ECEF body position, its alignment, T_slam_cam, (reset_counter, map_id)) of the last fix
         self._prev: tuple[float, np.ndarray, Alignment, np.ndarray, tuple[int, int]] | None = None
         self._v_ecef: np.ndarray | None = None           # smoothed fix velocity (ECEF m/s)
+        self._placer: tuple[Alignment, Alignment] | None = None  # (a, b): under a new alignment a, the previous pose is placed with b
         self._jump: tuple[float, float] = (0.0, 0.0)     # (t_s, m) of the largest recent innovation
         self._hold_jumps = False                         # no decay (``hold_jumps``)
         self._unanchored = False                         # no decay: a jump beyond 3× the alignment's σ since it was adopted
@@ -83,7 +84,7 @@ class Globalizer:
         with self._lock:
             self._alignment = None
             self._cov_center = None
-            self._prev = None
+            self._prev = self._placer = None
             self._v_ecef = None
             self._jump = (0.0, 0.0)
             self._unanchored = self._reanchored = False
@@ -119,7 +120,9 @@ class Globalizer:
         """Adopt an accepted alignment (called from the fine-tuning worker; thread-safe).
         ``follows``: the alignment ``a`` replaces as the same alignment carried along with a moved
         map (companion.pipeline, _follow_map), so fixes stay continuous: the velocity and SLAM-jump
-        history of the previous fixes carries over instead of starting again."""
+        history of the previous fixes carries over instead of starting again. If no fix used
+        ``follows`` yet (a new alignment, carried along in the frame it arrived), the previous pose
+        is placed with it, not with ``a``: that pose was solved against the map before the move."""
         T = a.T_ecef_slam
         c_ecef = T.apply(a.center_slam) if a.center_slam is not None else T.t
         lat, lon, _ = ecef_to_geodetic(c_ecef)
@@ -130,7 +133,10 @@ class Globalizer:
             self._cov_center = (c_ecef, R_ecef_enuC, cov6)
             if follows is not None and self._prev is not None and self._prev[2] is follows:
                 self._prev = (*self._prev[:2], a, *self._prev[3:])
-            elif self._unanchored:  # a new alignment: the jump's term decays from the next fix on
+                return
+            if follows is not None:  # a new alignment, carried along before a fix used it
+                self._placer = (a, self._placer[1] if self._placer is not None and self._placer[0] is follows else follows)
+            if self._unanchored:  # a new alignment: the jump's term decays from the next fix on
                 self._reanchored = True
 
     def fix(self, pose: SlamPose) -> GlobalFix | None:
@@ -196,7 +202,11 @@ class Globalizer:
         prev, self._prev = self._prev, (t_s, p, a, T_slam_cam, slam_map)
         if prev is None or prev[4] != slam_map or not 0 < t_s - prev[0] <= self.max_velocity_dt_s:
             return None
-        p_prev = prev[1] if prev[2] is a else (a.T_ecef_slam.apply_pose(prev[3]) @ self.T_cam_body)[:3, 3]
+        if prev[2] is a:
+            p_prev = prev[1]
+        else:
+            placer = self._placer[1] if self._placer is not None and self._placer[0] is a else a
+            p_prev = (placer.T_ecef_slam.apply_pose(prev[3]) @ self.T_cam_body)[:3, 3]
         dt = t_s - prev[0]
         return dt, (p - p_prev) / dt
 
