@@ -63,7 +63,6 @@ class Globalizer:
         # (t_s, ECEF body position, its alignment, T_slam_cam, (reset_counter, map_id)) of the last fix
         self._prev: tuple[float, np.ndarray, Alignment, np.ndarray, tuple[int, int]] | None = None
         self._v_ecef: np.ndarray | None = None           # smoothed fix velocity (ECEF m/s)
-        self._placer: tuple[Alignment, Alignment] | None = None  # (a, b): under a new alignment a, the previous pose is placed with b
         self._jump: tuple[float, float] = (0.0, 0.0)     # (t_s, m) of the largest recent innovation
         self._hold_jumps = False                         # no decay (``hold_jumps``)
         self._unanchored = False                         # no decay: a jump beyond 3× the alignment's σ since it was adopted
@@ -84,7 +83,7 @@ class Globalizer:
         with self._lock:
             self._alignment = None
             self._cov_center = None
-            self._prev = self._placer = None
+            self._prev = None
             self._v_ecef = None
             self._jump = (0.0, 0.0)
             self._unanchored = self._reanchored = False
@@ -131,11 +130,12 @@ class Globalizer:
         with self._lock:
             self._alignment = a
             self._cov_center = (c_ecef, R_ecef_enuC, cov6)
-            if follows is not None and self._prev is not None and self._prev[2] is follows:
-                self._prev = (*self._prev[:2], a, *self._prev[3:])
+            prev = self._prev
+            if prev is not None and follows is not None and prev[2] is follows:
+                self._prev = (*prev[:2], a, *prev[3:])  # the same alignment, carried along: fixes continuous
                 return
-            if follows is not None:  # a new alignment, carried along before a fix used it
-                self._placer = (a, self._placer[1] if self._placer is not None and self._placer[0] is follows else follows)
+            if prev is not None:  # a new alignment: the previous pose placed with it (or with the one it was carried from)
+                self._prev = (prev[0], self._place(follows if follows is not None else a, prev[3]), a, *prev[3:])
             if self._unanchored:  # a new alignment: the jump's term decays from the next fix on
                 self._reanchored = True
 
@@ -202,13 +202,14 @@ class Globalizer:
         prev, self._prev = self._prev, (t_s, p, a, T_slam_cam, slam_map)
         if prev is None or prev[4] != slam_map or not 0 < t_s - prev[0] <= self.max_velocity_dt_s:
             return None
-        if prev[2] is a:
-            p_prev = prev[1]
-        else:
-            placer = self._placer[1] if self._placer is not None and self._placer[0] is a else a
-            p_prev = (placer.T_ecef_slam.apply_pose(prev[3]) @ self.T_cam_body)[:3, 3]
+        # (prev is re-placed by update_alignment; only one adopted after this fix read it is not)
+        p_prev = prev[1] if prev[2] is a else self._place(a, prev[3])
         dt = t_s - prev[0]
         return dt, (p - p_prev) / dt
+
+    def _place(self, a: Alignment, T_slam_cam: np.ndarray) -> np.ndarray:
+        """ECEF position of the body at SLAM pose T_slam_cam under alignment a."""
+        return (a.T_ecef_slam.apply_pose(T_slam_cam) @ self.T_cam_body)[:3, 3]
 
     def _jump_m(self, t_s: float, step: tuple[float, np.ndarray] | None) -> tuple[float, float]:
         """The SLAM-jump term (module doc): the distance of this fix from the constant-velocity
