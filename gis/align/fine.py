@@ -174,6 +174,7 @@ MAX_PRIOR_SIGMA_M = 2.5        # ICP's basin on real SLAM clouds is ≈3 m: a va
 CHI2_999 = 24.32               # χ² 99.9 % quantile, 7 degrees of freedom
 UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
 ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton step moves no cloud point more than this
+COARSE_LEVEL_STRIDE = 2        # the two coarse ICP levels on every 2nd source point, the last on all (_icp)
 MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
 TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
 MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
@@ -758,14 +759,20 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
 
     Each iteration: one KD-tree query (C) for the correspondences, then one Gauss–Newton step of
     digital-twin Eq. 2 with the Jacobian rows A_j of Eq. 9 extended by the scale column n_j·a_j. A level ends when a step moves
-    no cloud point more than ICP_STEP_TOL_M (10× below the σ floor)."""
+    no cloud point more than ICP_STEP_TOL_M (10× below the σ floor).
+
+    The two coarse levels (max_correspondence_m, /2) run on every COARSE_LEVEL_STRIDE-th source
+    point and the last level on all of them, so where a registration settles is decided by the
+    whole cloud. The KD-tree queries are most of a registration's cost and each level usually runs
+    all its iterations: this saves about a third of them (docs/BENCHMARKS.md, "Fine-tuning cost")."""
     s, R, t = T0.scale, T0.R, T0.t
     reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
         k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
+        pts = src if level == 2 else src[::COARSE_LEVEL_STRIDE]
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
-            x, n, r = _matches(src, crop, c, s, R, t, max_d)
+            x, n, r = _matches(pts, crop, c, s, R, t, max_d)
             if len(r) < 7:
                 break
             w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
