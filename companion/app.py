@@ -460,13 +460,21 @@ def antenna_to_body(p_antenna_ecef_m: np.ndarray, fix: GlobalFix, p_body_gnss_m:
 
 def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int | None = None,
                progress: Callable[[int, int, str], None] | None = None, repeatable: bool = False,
-               deny: GnssDenial | None = None, gis_model: Path | None = None) -> dict:
+               deny: GnssDenial | None = None, gis_model: Path | None = None, realtime: bool = False) -> dict:
     """Offline replay of a dataset: GNSS judged by the same monitor as live, no autopilot.
     ``repeatable``: as in fly_sim. ``deny``: GNSS withheld over a span (GnssDenial), and the
     fixes sent meanwhile judged against it (summary ``against_withheld_gnss``). ``gis_model``:
-    the GIS model to use instead of the files site.yaml names."""
+    the GIS model to use instead of the files site.yaml names. ``realtime``: each frame goes to
+    the pipeline no earlier than its recorded time after the first frame (wall clock), as a
+    camera delivers them, so mapping and fine-tuning get the idle time they would get in flight
+    (without it the loop runs as fast as it can and they compete with it for the cores); a frame
+    reached late is still processed, and summary ``realtime`` counts those more than one frame
+    interval late. Not with ``repeatable`` (which waits for mapping and fine-tuning instead)."""
     from companion.dataset import read_dataset
 
+    if realtime and repeatable:
+        raise ValueError("realtime and repeatable replays exclude each other: a repeatable replay waits "
+                         "for local mapping and fine-tuning at every frame, a real-time one never waits for them")
     ds = read_dataset(dataset_dir, None if gis_model is None else [gis_model])
     if not ds.gis_files:
         raise ValueError(f"dataset {dataset_dir} lists no GIS model file (site.yaml gis)")
@@ -482,10 +490,20 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
     run = RunLog(denial=deny)
     lost_since: float | None = None
     last_att = None
+    late_ms: list[float] = []  # realtime: how late each frame reached the pipeline
+    t_wall0: float | None = None
     try:
         for k, step in enumerate(ds.steps()):
             if k >= n:
                 break
+            if realtime:
+                now = time.perf_counter()
+                if t_wall0 is None:
+                    t_wall0 = now
+                due = t_wall0 + float(step.frame.t_s - ds.frame_t_s[0])
+                if due > now:
+                    time.sleep(due - now)
+                late_ms.append(max(0.0, (time.perf_counter() - due) * 1e3))
             for s in step.gnss:
                 run.gnss_ecef_m.append((s.t_s, gnss_ecef(s), s.fix_type >= 3))
                 monitor.on_sample(no_fix_sample(s.t_s) if deny is not None and deny.covers(s.t_s) else s)
@@ -531,9 +549,20 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             if at is not None:
                 run.reference[r.seq] = (antenna_to_body(at[0], r.fix, ds.p_body_gnss_m), at[1])
     summary = summarize(run, name=f"replay {ds.name}")
+    if realtime:
+        summary["realtime"] = _lateness(late_ms, float(np.median(np.diff(ds.frame_t_s[:n]))) if n > 1 else 0.0)
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, ds.origin, f"TerraSLAM replay of {ds.name}")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title=f"TerraSLAM replay of {ds.name}")
     return summary
+
+
+def _lateness(late_ms: list[float], frame_interval_s: float) -> dict:
+    """A real-time replay's pacing: frames more than one frame interval late (the pipeline did
+    not keep up with the camera there), the mean and largest lateness."""
+    late = np.asarray(late_ms, float)
+    return {"frames": int(late.size), "frame_interval_ms": 1e3 * frame_interval_s,
+            "late_frames": int(np.sum(late > 1e3 * frame_interval_s)),
+            "late_ms_mean": float(late.mean()) if late.size else 0.0, "late_ms_max": float(late.max(initial=0.0))}
 
 
 def _load_first_model(paths: Iterable[Path], cfg: AppConfig) -> GisModel:

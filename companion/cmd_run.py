@@ -67,6 +67,10 @@ def _print_summary(summary: dict, out: Path) -> None:
         t.add_row("autopilot EKF horizontal error after takeover (mean / P99)", f"{fmt(ap['mean'])} / {fmt(ap['p99'])} m")
     lat = summary["frame_latency_ms"]
     t.add_row("per-frame pipeline latency (mean / P99)", f"{fmt(lat['mean'])} / {fmt(lat['p99'])} ms")
+    rt = summary.get("realtime")
+    if rt is not None:
+        t.add_row("real time: frames more than one interval late", f"{rt['late_frames']} of {rt['frames']} "
+                  f"(late by {fmt(rt['late_ms_mean'])} ms mean, {fmt(rt['late_ms_max'])} ms at most)")
     ft = summary["finetune_ms"]
     t.add_row("GIS fine-tune wall time (mean / P99)", f"{fmt(ft['mean'])} / {fmt(ft['p99'])} ms")
     fc = summary["finetune_cpu_ms"]
@@ -139,6 +143,7 @@ def replay(
     deny_from: Optional[float] = typer.Option(None, "--deny-gnss-from", help="simulated GNSS denial: from this many seconds after the first frame, GNSS reaches the pipeline as 'no fix'; the fixes sent meanwhile are judged against the withheld GNSS (a recorded flight's yardstick)"),
     deny_until: Optional[float] = typer.Option(None, "--deny-gnss-until", help="end of the simulated denial, seconds after the first frame (default: to the end)"),
     gis_model: Optional[Path] = typer.Option(None, "--gis-model", help="GIS model file to use instead of those site.yaml names (a recording copied off the drone)"),
+    realtime: bool = typer.Option(False, "--realtime", help="feed the frames at their recorded rate, as the camera would (mapping and fine-tuning get the idle time they get in flight); reports the frames that came late. Not with --repeatable"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Replay a dataset offline; writes trajectory CSV/TUM/GeoJSON and a report (errors when truth
@@ -161,7 +166,7 @@ def replay(
                 bar.update(task, completed=k, total=n)
 
             summary = run_replay(cfg, dataset, out, frames, progress=progress, repeatable=repeatable, deny=deny,
-                                 gis_model=gis_model)
+                                 gis_model=gis_model, realtime=realtime)
     except (DatasetError, ValueError, FileNotFoundError) as e:
         fail(str(e))
     _print_summary(summary, out)

@@ -18,6 +18,7 @@ def generate(
     out: Path = typer.Option(..., "--out", "-o", help="output dataset directory (created)"),
     seed: int = typer.Option(0, "--seed", help="world / flight / noise seed"),
     frames: Optional[int] = typer.Option(None, "--frames", "-n", min=1, help="number of frames (default: whole flight)"),
+    fps: Optional[float] = typer.Option(None, "--fps", min=1.0, max=60.0, help="camera frame rate (default: the scenario's)"),
     gnss_timeline: Optional[str] = typer.Option(None, "--gnss", help="scripted GNSS events, e.g. 'dropout@60-90,spoof_drift@120'"),
     stale: Optional[str] = typer.Option(None, "--stale", help="GIS model staleness preset: fresh | F-A | F-B (default: the scenario's)"),
     registration_error_m: Optional[float] = typer.Option(None, "--registration-error-m", min=0.0, max=50.0,
@@ -50,7 +51,7 @@ def generate(
     if registration_error_m is not None:
         overrides["stale"] = replace(overrides.get("stale", SCENARIOS[scenario].stale), registration_error_m=registration_error_m)
     try:
-        sc = make_scenario(scenario, seed=seed, n_frames=frames, **overrides)
+        sc = make_scenario(scenario, seed=seed, n_frames=frames, **({} if fps is None else {"fps": fps}), **overrides)
     except ValueError as e:
         fail(str(e))
     write_dataset(sc, out, progress=True, image_ext=".jpg" if jpg else ".png")

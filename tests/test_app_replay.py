@@ -210,3 +210,39 @@ def test_replay_of_a_dataset_whose_gis_model_moved_takes_it_from_gis_model(tmp_p
     assert r.exit_code == 0, r.output
     assert "none: the dataset has no truth.csv" in r.output and "3D error, all fixes" not in r.output
     assert json.loads((tmp_path / "o3" / "report.json").read_text())["frames"] == 12
+
+
+def test_a_realtime_replay_feeds_frames_no_faster_than_they_were_recorded(tmp_path):
+    """--realtime: every frame reaches the pipeline no earlier than its recorded time after the
+    first one (wall clock), and the report says how many came late; with --repeatable it is refused."""
+    import time
+
+    import pytest
+
+    ds = tmp_path / "ds"
+    write_dataset(make_scenario("nominal", seed=3, n_frames=20, fps=10), ds, progress=False)
+    seen = []
+    from companion.pipeline import Localizer
+
+    process = Localizer.process
+
+    def timed(self, inp):
+        seen.append((time.perf_counter(), inp.frame.t_s))
+        return process(self, inp)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(Localizer, "process", timed)
+    try:
+        summary = run_replay(load_config(environ={}), ds, tmp_path / "out", realtime=True)
+    finally:
+        mp.undo()
+    (w0, t0) = seen[0]
+    assert len(seen) == 20
+    for w, t in seen[1:]:
+        assert w - w0 >= (t - t0) - 1e-3, "a frame went to the pipeline before its recorded time"
+    rt = summary["realtime"]
+    assert rt["frames"] == 20 and abs(rt["frame_interval_ms"] - 100.0) < 1.0
+    assert 0 <= rt["late_frames"] <= 20 and rt["late_ms_max"] >= rt["late_ms_mean"] >= 0.0
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["realtime"]["frames"] == 20
+    with pytest.raises(ValueError, match="exclude each other"):
+        run_replay(load_config(environ={}), ds, tmp_path / "out2", realtime=True, repeatable=True)

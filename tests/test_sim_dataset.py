@@ -52,6 +52,16 @@ def test_generate_with_gnss_timeline_and_errors(runner, tmp_path):
     assert r.exit_code != 0 and "n_frames must be in" in r.output
 
 
+def test_generate_at_another_frame_rate(runner, tmp_path):
+    out = tmp_path / "ten"
+    r = runner.invoke(app, ["sim", "generate", "-s", "nominal", "-o", str(out), "-n", "4", "--fps", "10"])
+    assert r.exit_code == 0, r.output
+    ds = read_dataset(out)
+    assert ds.fps == 10.0 and np.allclose(np.diff(ds.frame_t_s), 0.1)
+    r = runner.invoke(app, ["sim", "generate", "-s", "nominal", "-o", str(tmp_path / "fast"), "-n", "2", "--fps", "0.5"])
+    assert r.exit_code != 0
+
+
 def test_generate_stale_preset_and_registration_error(runner, tmp_path):
     import yaml
 
