@@ -175,6 +175,7 @@ CHI2_999 = 24.32               # χ² 99.9 % quantile, 7 degrees of freedom
 UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
 ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton step moves no cloud point more than this
 COARSE_LEVEL_STRIDE = 2        # the two coarse ICP levels on every 2nd source point, the last on all (_icp)
+CORR_REUSE_STEP_M = 0.1        # after an ICP step that moved no point more than this, the next step keeps its correspondences (_icp)
 MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
 TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
 MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
@@ -764,15 +765,25 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
     The two coarse levels (max_correspondence_m, /2) run on every COARSE_LEVEL_STRIDE-th source
     point and the last level on all of them, so where a registration settles is decided by the
     whole cloud. The KD-tree queries are most of a registration's cost and each level usually runs
-    all its iterations: this saves about a third of them (docs/BENCHMARKS.md, "Fine-tuning cost")."""
+    all its iterations: this saves about a third of them. After a step that moved no cloud point
+    more than CORR_REUSE_STEP_M (a tenth of the model's 1 m voxel spacing, so a nearest model
+    point seldom changes), the next step is solved on the same correspondences instead of a new
+    query (two Gauss–Newton steps per query, as ICP variants with inner iterations do); a level
+    ends on a converged step only when its correspondences were fresh (docs/BENCHMARKS.md,
+    "Fine-tuning cost")."""
     s, R, t = T0.scale, T0.R, T0.t
     reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
         k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
         pts = src if level == 2 else src[::COARSE_LEVEL_STRIDE]
+        corr, step_m, fresh = None, math.inf, True
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
-            x, n, r = _matches(pts, crop, c, s, R, t, max_d)
+            fresh = corr is None or step_m >= CORR_REUSE_STEP_M or not fresh
+            if fresh:
+                corr = _correspondences(pts, crop, c, s, R, t, max_d)
+            p, n, b = corr
+            x, r = _residuals(p, n, b, s, R, t)
             if len(r) < 7:
                 break
             w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
@@ -786,7 +797,7 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
             Rd, sd = _rotvec_matrix(delta[:3]), float(np.exp(delta[6]))
             s, R, t = sd * s, Rd @ R, sd * Rd @ t + delta[3:6]  # T ← δ ∘ T
             step_m = np.linalg.norm(delta[3:6]) + (np.linalg.norm(delta[:3]) + abs(delta[6])) * s * reach_m
-            if step_m < ICP_STEP_TOL_M:
+            if step_m < ICP_STEP_TOL_M and fresh:
                 break
     return Sim3(s, R, t)
 
@@ -806,15 +817,28 @@ def _evaluate(src: np.ndarray, crop: _Crop, c: np.ndarray, T: Sim3, cfg: Alignme
 
 def _matches(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
              max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Moved source points x = s·R·p + t (centred at c) whose nearest model point b lies within
-    max_d (one KD-tree query), the model normals n there and the point-to-plane residuals
-    r = n·(x − b) of digital-twin Eq. 2."""
-    x = s * src @ R.T + t
-    d, j = crop.tree.query(x + c, distance_upper_bound=max_d)
+    """Moved source points x = s·R·p + t (centred at c) whose nearest model point lies within
+    max_d, the model normals n there and the point-to-plane residuals r of digital-twin Eq. 2."""
+    p, n, b = _correspondences(src, crop, c, s, R, t, max_d)
+    x, r = _residuals(p, n, b, s, R, t)
+    return x, n, r
+
+
+def _correspondences(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
+                     max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(source points p, model normals n, model points b centred at c): the points whose moved
+    position s·R·p + t (centred at c) has its nearest model point b within max_d (one KD-tree query)."""
+    d, j = crop.tree.query(s * src @ R.T + t + c, distance_upper_bound=max_d)
     ok = np.isfinite(d)
-    x, j = x[ok], j[ok]
-    n = crop.normals[j]
-    return x, n, np.einsum("ij,ij->i", n, x - (crop.points[j] - c))
+    j = j[ok]
+    return src[ok], crop.normals[j], crop.points[j] - c
+
+
+def _residuals(p: np.ndarray, n: np.ndarray, b: np.ndarray, s: float, R: np.ndarray,
+               t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x = s·R·p + t, r = n·(x − b)): moved points and their point-to-plane residuals (Eq. 2)."""
+    x = s * p @ R.T + t
+    return x, np.einsum("ij,ij->i", n, x - b)
 
 
 def _jacobian(x: np.ndarray, n: np.ndarray) -> np.ndarray:
