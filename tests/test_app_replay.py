@@ -212,30 +212,21 @@ def test_replay_of_a_dataset_whose_gis_model_moved_takes_it_from_gis_model(tmp_p
     assert json.loads((tmp_path / "o3" / "report.json").read_text())["frames"] == 12
 
 
-def test_a_realtime_replay_feeds_frames_no_faster_than_they_were_recorded(tmp_path):
+def test_a_realtime_replay_feeds_frames_no_faster_than_they_were_recorded(tmp_path, monkeypatch):
     """--realtime: every frame reaches the pipeline no earlier than its recorded time after the
     first one (wall clock), and the report says how many came late; with --repeatable it is refused."""
     import time
 
     import pytest
 
+    from companion.pipeline import Localizer
+
     ds = tmp_path / "ds"
     write_dataset(make_scenario("nominal", seed=3, n_frames=20, fps=10), ds, progress=False)
     seen = []
-    from companion.pipeline import Localizer
-
     process = Localizer.process
-
-    def timed(self, inp):
-        seen.append((time.perf_counter(), inp.frame.t_s))
-        return process(self, inp)
-
-    mp = pytest.MonkeyPatch()
-    mp.setattr(Localizer, "process", timed)
-    try:
-        summary = run_replay(load_config(environ={}), ds, tmp_path / "out", realtime=True)
-    finally:
-        mp.undo()
+    monkeypatch.setattr(Localizer, "process", lambda self, inp: seen.append((time.perf_counter(), inp.frame.t_s)) or process(self, inp))
+    summary = run_replay(load_config(environ={}), ds, tmp_path / "out", realtime=True)
     (w0, t0) = seen[0]
     assert len(seen) == 20
     for w, t in seen[1:]:
