@@ -229,8 +229,11 @@ def test_a_realtime_replay_feeds_frames_no_faster_than_they_were_recorded(tmp_pa
     summary = run_replay(load_config(environ={}), ds, tmp_path / "out", realtime=True)
     (w0, t0) = seen[0]
     assert len(seen) == 20
+    # the pacer releases a step before its GNSS samples, the monitor and settle run, and that work
+    # differs per frame (the first is slower), so a frame's process call is checked to within a
+    # fifth of an interval of its recorded time; unpaced, frame 1 came 0.07 s early here
     for w, t in seen[1:]:
-        assert w - w0 >= (t - t0) - 1e-3, "a frame went to the pipeline before its recorded time"
+        assert w - w0 >= (t - t0) - 0.02, "a frame went to the pipeline before its recorded time"
     rt = summary["realtime"]
     assert rt["frames"] == 20 and abs(rt["frame_interval_ms"] - 100.0) < 1.0
     assert 0 <= rt["late_frames"] <= 20 and rt["late_ms_max"] >= rt["late_ms_mean"] >= 0.0
