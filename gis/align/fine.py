@@ -36,8 +36,9 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   - SYS_OFFSET_FRACTION × the robust (MAD) residual scale of all matched points, scaled by the
     cloud's own residuals, so a clean cloud (synthetic, 5 cm noise) keeps a centimetre σ and a
     real one (σ_MAD 0.3–0.55 m inside the final correspondence window) gets 0.45–0.8 m;
-  - the basin spread: ICP is restarted from its own solution shifted MULTISTART_M
-    east/north/west/south; ``spread_m`` is the largest disagreement of the restarts. On the
+  - the basin spread: ICP is restarted from its own solution shifted MULTISTART_M in three
+    horizontal directions 120° apart (MULTISTARTS); ``spread_m`` is the largest disagreement of
+    the restarts. On the
     real clouds the optimum moved 0.3–3 m between restarts (stale model: stable wrong optima
     4 m from truth were caught only by 3 m restarts, not by 2 m ones); the Hessian alone
     reported 0.05–0.2 m.
@@ -126,8 +127,8 @@ priors are refused. With a FINE prior (covariance intersection) the gain is smal
 limit is the SLAM cloud (numbers above), not the solver.
 
 Cost (issue 5): the KD-tree query of each ICP iteration dominates (pykdtree 0.28 µs per point,
-scipy's cKDTree 0.36, identical neighbours; real SLAM crops hold 200–900 points after the voxel
-filter, and 5 ICPs × up to 36 iterations run). Levels
+scipy's cKDTree 0.36, identical neighbours; real SLAM crops hold 200–1400 points after the voxel
+filter, and 4 ICPs × up to 36 iterations run). Levels
 stop once a step moves no point more than ICP_STEP_TOL_M; on real clouds the IRLS still creeps by
 centimetres at the end of a level, so most levels run their 12 iterations, as before. Measured
 on 28 real-SLAM map snapshots (nominal + stale, 400 frames, 7 priors each): thread CPU 135 → 80 ms
@@ -167,8 +168,12 @@ RANDOM_INFLATION = 4.0         # variance factor of σ²H⁻¹ for correlated ne
 SYS_OFFSET_FRACTION = 1.5      # systematic translation 1-σ ≥ this × σ_MAD (module doc: 0.75, added to the spread, gave NEES 4.4–8.5)
 SPREAD_FRACTION = 0.5          # ... and ≥ this × the restarts' translation spread (module doc: the optimum sat 0.2–0.6 × it off)
 SYS_SCALE_SIGMA = 0.005        # scale mismatch between a cloud and its trajectory (relative 1-σ)
-MULTISTART_M = 3.0             # basin check: ICP restarted from its solution shifted this far east/north/west/south
-MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 90.0, 180.0, 270.0))
+MULTISTART_M = 3.0             # basin check: ICP restarted from its solution shifted this far horizontally ...
+# ... in three directions 120° apart (degrees counter-clockwise from east). Every horizontal axis
+# is then within 30° of a restart, which moves ≥ 2.6 m along it; east/north/west/south (until
+# 2026-12-07) left axes 45° from all four, 2.1 m along them, for a fourth ICP (docs/BENCHMARKS.md,
+# "Fine-tuning cost", update of 2026-12-07)
+MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 120.0, 240.0))
 STANDALONE_MAX_SPREAD_M = 0.5  # without a prior to check against, the optimum must be unique to this
 MAX_PRIOR_SIGMA_M = 2.5        # ICP's basin on real SLAM clouds is ≈3 m: a vaguer prior cannot be refined safely
 CHI2_999 = 24.32               # χ² 99.9 % quantile, 7 degrees of freedom
