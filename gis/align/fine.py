@@ -171,7 +171,7 @@ SYS_SCALE_SIGMA = 0.005        # scale mismatch between a cloud and its trajecto
 MULTISTART_M = 3.0             # basin check: ICP restarted from its solution shifted this far horizontally ...
 # ... in three directions 120° apart (degrees counter-clockwise from east). Every horizontal axis
 # is then within 30° of a restart, which moves ≥ 2.6 m along it; east/north/west/south (until
-# 2026-12-07) left axes 45° from all four, 2.1 m along them, for a fourth ICP (docs/BENCHMARKS.md,
+# 2026-12-07) left axes 45° from all four, 2.1 m along them, with a fourth restart (docs/BENCHMARKS.md,
 # "Fine-tuning cost", update of 2026-12-07)
 MULTISTARTS = tuple((MULTISTART_M, a) for a in (0.0, 120.0, 240.0))
 STANDALONE_MAX_SPREAD_M = 0.5  # without a prior to check against, the optimum must be unique to this
