@@ -492,6 +492,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
     last_att = None
     late_ms: list[float] = []  # realtime: how late each frame reached the pipeline
     t_wall0: float | None = None
+    t_loop0 = time.perf_counter()
     try:
         for k, step in enumerate(ds.steps()):
             if k >= n:
@@ -540,6 +541,7 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
                                          f"last GNSS bootstrap refusal: {localizer.bootstrap.last_refusal}"))
         run.finetune_ms = list(localizer.worker.wall_ms) if localizer.worker else []
         run.finetune_cpu_ms = list(localizer.worker.cpu_ms) if localizer.worker else []
+        loop_s = time.perf_counter() - t_loop0
     finally:
         localizer.close()
     if deny is not None:
@@ -549,11 +551,21 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
             if at is not None:
                 run.reference[r.seq] = (antenna_to_body(at[0], r.fix, ds.p_body_gnss_m), at[1])
     summary = summarize(run, name=f"replay {ds.name}")
+    summary["pace"] = _pace("realtime" if realtime else "repeatable" if repeatable else "unpaced",
+                            run.records[-1].t_s - run.records[0].t_s if run.records else 0.0, loop_s)
     if realtime:
         summary["realtime"] = _lateness(late_ms, 1.0 / ds.fps)
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, ds.origin, f"TerraSLAM replay of {ds.name}")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title=f"TerraSLAM replay of {ds.name}")
     return summary
+
+
+def _pace(mode: str, recorded_s: float, wall_s: float) -> dict:
+    """How fast a replay ran against its recording: ``speed_x`` = recorded span / wall time of the
+    loop. An ``unpaced`` replay faster than real time runs tracking ahead of local mapping and
+    fine-tuning, which lag it more than in flight (docs/DATASET.md, "Will this board keep up?")."""
+    return {"mode": mode, "recorded_s": float(recorded_s), "wall_s": float(wall_s),
+            "speed_x": float(recorded_s / wall_s) if wall_s > 0 else float("nan")}
 
 
 def _lateness(late_ms: list[float], frame_interval_s: float) -> dict:

@@ -67,6 +67,13 @@ def _print_summary(summary: dict, out: Path) -> None:
         t.add_row("autopilot EKF horizontal error after takeover (mean / P99)", f"{fmt(ap['mean'])} / {fmt(ap['p99'])} m")
     lat = summary["frame_latency_ms"]
     t.add_row("per-frame pipeline latency (mean / P99)", f"{fmt(lat['mean'])} / {fmt(lat['p99'])} ms")
+    pace = summary.get("pace")
+    if pace is not None:
+        note = {"realtime": "frames fed at the camera's rate",
+                "repeatable": "mapping and fine-tuning waited for at every frame",
+                "unpaced": "as fast as possible" + ("; local mapping and fine-tuning lag tracking more than in "
+                                                     "flight (--realtime feeds the camera's rate)" if pace["speed_x"] > 1.2 else "")}[pace["mode"]]
+        t.add_row("replay pace (recorded span / wall time)", f"{fmt(pace['speed_x'])}× real time: {note}")
     rt = summary.get("realtime")
     if rt is not None:
         t.add_row("real time: frames more than one interval late", f"{rt['late_frames']} of {rt['frames']} "

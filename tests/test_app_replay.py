@@ -25,6 +25,12 @@ def test_replay_writes_outputs_and_sends_nothing_without_alignment(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["tracking_events"], "the SLAM timeline is reported"
     assert report["frame_latency_ms"]["mean"] > 0
+    # how fast it ran against the recording: the frames' span over the loop's wall time
+    from companion.dataset import read_dataset
+    t = read_dataset(ds).frame_t_s
+    pace = report["pace"]
+    assert pace["mode"] == "unpaced" and abs(pace["recorded_s"] - (t[-1] - t[0])) < 1e-9 and pace["wall_s"] > 0
+    assert abs(pace["speed_x"] - pace["recorded_s"] / pace["wall_s"]) < 1e-9
 
 
 def test_replay_gives_each_frame_the_newest_attitude_up_to_0_1_s_old(tmp_path, monkeypatch):
@@ -234,6 +240,8 @@ def test_a_realtime_replay_feeds_frames_no_faster_than_they_were_recorded(tmp_pa
     # fifth of an interval of its recorded time; unpaced, frame 1 came 0.07 s early here
     for w, t in seen[1:]:
         assert w - w0 >= (t - t0) - 0.02, "a frame went to the pipeline before its recorded time"
+    # paced: the loop takes at least the recorded span (the last frame waited for its time)
+    assert summary["pace"]["mode"] == "realtime" and summary["pace"]["speed_x"] <= 1.0 + 0.02 / 1.9
     rt = summary["realtime"]
     assert rt["frames"] == 20 and abs(rt["frame_interval_ms"] - 100.0) < 1.0
     assert 0 <= rt["late_frames"] <= 20 and rt["late_ms_max"] >= rt["late_ms_mean"] >= 0.0
