@@ -71,8 +71,8 @@ def _print_summary(summary: dict, out: Path) -> None:
     if pace is not None:
         note = {"realtime": "frames fed at the camera's rate",
                 "repeatable": "mapping and fine-tuning waited for at every frame",
-                "unpaced": "as fast as possible" + ("; local mapping and fine-tuning lag tracking more than in "
-                                                     "flight (--realtime feeds the camera's rate)" if pace["speed_x"] > 1.2 else "")}[pace["mode"]]
+                "unpaced": "as fast as possible" + ("; local mapping and fine-tuning get less time per frame than "
+                                                     "in flight (--realtime feeds the camera's rate)" if pace["speed_x"] > 1.2 else "")}[pace["mode"]]
         t.add_row("replay pace (recorded span / wall time)", f"{fmt(pace['speed_x'])}× real time: {note}")
     rt = summary.get("realtime")
     if rt is not None:
