@@ -562,8 +562,8 @@ def run_replay(cfg: AppConfig, dataset_dir: Path, out_dir: Path, max_frames: int
 
 def _pace(mode: str, recorded_s: float, wall_s: float) -> dict:
     """How fast a replay ran against its recording: ``speed_x`` = recorded span / wall time of the
-    loop. An ``unpaced`` replay faster than real time runs tracking ahead of local mapping and
-    fine-tuning, which lag it more than in flight (docs/DATASET.md, "Will this board keep up?")."""
+    loop. An ``unpaced`` replay faster than real time gives local mapping and fine-tuning less time
+    per frame than in flight (docs/DATASET.md, "Will this board keep up?")."""
     return {"mode": mode, "recorded_s": float(recorded_s), "wall_s": float(wall_s),
             "speed_x": float(recorded_s / wall_s) if wall_s > 0 else float("nan")}
 

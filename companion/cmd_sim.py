@@ -50,8 +50,10 @@ def generate(
         overrides["stale"] = STALE_PRESETS[stale]
     if registration_error_m is not None:
         overrides["stale"] = replace(overrides.get("stale", SCENARIOS[scenario].stale), registration_error_m=registration_error_m)
+    if fps is not None:
+        overrides["fps"] = fps
     try:
-        sc = make_scenario(scenario, seed=seed, n_frames=frames, **({} if fps is None else {"fps": fps}), **overrides)
+        sc = make_scenario(scenario, seed=seed, n_frames=frames, **overrides)
     except ValueError as e:
         fail(str(e))
     write_dataset(sc, out, progress=True, image_ext=".jpg" if jpg else ".png")
