@@ -3,15 +3,18 @@ GNSS bootstrap; Globalizer against truth."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Icp, _jacobian,
-                             _measurement_cov, _update, enu_sim3)
+from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _gauss_newton_step,
+                             _Icp, _jacobian, _measurement_cov, _normal_equations, _update, enu_sim3)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -439,6 +442,81 @@ def test_cached_crop_gives_the_same_registration_as_a_fresh_crop(city):
     _same_registration(reg_cached, reg_fresh)
     err = np.linalg.norm(reg_cached.alignment.T_ecef_slam.apply(_slam(c2)) - T_ECEF_SLAM.apply(_slam(c2)))
     assert err < 3 * reg_cached.sigma_m and err < 0.2
+
+
+def _gn_case(seed=3, n_model=50, n_src=40):
+    rng = np.random.default_rng(seed)
+    b = rng.normal(size=(n_model, 3)) * 5.0
+    nrm = rng.normal(size=(n_model, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    p = rng.normal(size=(n_src, 3)) * 5.0
+    j = rng.integers(0, n_model + 10, n_src).astype(np.uint32)  # ≥ n_model: no model point in reach (pykdtree)
+    c = rng.normal(size=3)
+    R = Rotation.from_rotvec([0.01, -0.02, 0.03]).as_matrix()
+    return p, j, b, nrm, c, 1.02, R, rng.normal(size=3) * 0.3
+
+
+def test_the_compiled_gauss_newton_step_is_the_tukey_weighted_point_to_plane_step():
+    """_normal_equations / _gauss_newton_step (numba) against the same step written in numpy:
+    residuals of digital-twin Eq. 2, Tukey weights, the Jacobian rows of Eq. 9 plus the scale
+    column (_jacobian), then T ← δ ∘ T with δ = −(H + εI)⁻¹ g and Rodrigues as scipy computes it."""
+    p, j, b, nrm, c, s, R, t = _gn_case()
+    kernel_m = 4.0
+    ok = j < len(b)
+    x = s * p[ok] @ R.T + t
+    n = nrm[j[ok]]
+    r = np.einsum("ij,ij->i", n, x - (b[j[ok]] - c))
+    w = np.where(np.abs(r) < kernel_m, (1 - (r / kernel_m) ** 2) ** 2, 0.0)
+    assert 0 < (w > 0).sum() < ok.sum()  # the case has residuals inside and outside the kernel
+    J = _jacobian(x, n)
+    H, g, matched = _normal_equations(p, j, b, nrm, c, s, R, t, kernel_m)
+    assert matched == ok.sum()
+    np.testing.assert_allclose(H, (J * w[:, None]).T @ J, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(g, (J * w[:, None]).T @ r, rtol=1e-12, atol=1e-9)
+
+    reach_m = 12.0
+    stepped, s1, R1, t1, step_m = _gauss_newton_step(p, j, b, nrm, c, s, R, t, kernel_m, reach_m)
+    delta = -np.linalg.solve(H + 1e-6 * np.trace(H) / 7 * np.eye(7), g)
+    Rd, sd = Rotation.from_rotvec(delta[:3]).as_matrix(), np.exp(delta[6])
+    assert stepped
+    np.testing.assert_allclose(R1, Rd @ R, atol=1e-12)
+    np.testing.assert_allclose(t1, sd * Rd @ t + delta[3:6], atol=1e-12)
+    assert s1 == pytest.approx(sd * s, rel=1e-12)
+    assert step_m == pytest.approx(np.linalg.norm(delta[3:6]) + (np.linalg.norm(delta[:3]) + abs(delta[6])) * s1 * reach_m, rel=1e-12)
+
+    # no step: fewer than 7 matched points, or every residual beyond the kernel (H = 0, singular)
+    for j_bad, k_bad in ((np.where(np.arange(len(j)) < 6, 0, len(b)).astype(np.uint32), kernel_m), (j, 1e-9)):
+        stepped, s2, R2, t2, _ = _gauss_newton_step(p, j_bad, b, nrm, c, s, R, t, k_bad, reach_m)
+        assert not stepped and s2 == s and np.array_equal(R2, R) and np.array_equal(t2, t)
+
+
+def test_registrations_run_the_kernels_compiled_when_the_tuner_was_made(city):
+    """FineTuner compiles the ICP step for the argument types registrations pass it (compile_kernels),
+    so no registration compiles another variant (seconds, in the first registration of a flight)."""
+    tuner = FineTuner(city)
+    assert len(_gauss_newton_step.signatures) == 1
+    assert _register_at(tuner, city, np.array([27.0, -10.0, 0.0])).reason == "ok"
+    assert len(_gauss_newton_step.signatures) == 1
+
+
+def test_the_fine_tuner_compiles_where_no_numba_cache_directory_is_writable():
+    """A read-only install run without NUMBA_CACHE_DIR or a home: numba finds no cache directory
+    (here its probe is made to fail as on a read-only file system) and would refuse to import the
+    module; it imports, warns, and compiles the kernels without the cache."""
+    code = (
+        "import logging, numba.core.caching as caching\n"
+        "def read_only(self):\n"
+        "    raise OSError(30, 'Read-only file system')\n"
+        "caching._CacheLocator.ensure_cache_path = read_only\n"
+        "logging.basicConfig(level=logging.WARNING)\n"
+        "import gis.align.fine as F\n"
+        "F.compile_kernels()\n"
+        "print('signatures', len(F._gauss_newton_step.signatures), type(F._gauss_newton_step._cache).__name__)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stderr
+    assert "signatures 1 NullCache" in r.stdout, r.stdout
+    assert "NUMBA_CACHE_DIR" in r.stderr
 
 
 def test_finetune_threads_do_not_change_the_registration_and_the_limit_ends_with_it(city):

@@ -13,7 +13,8 @@ gives it the same correspondences (_CropCache).
   from a 3 m guess and the ICP never moved.
 - Solve: each iteration is one Gauss–Newton step of the point-to-plane cost of digital-twin Eq. 2
   (Tukey IRLS) over rotation, translation and log-scale; the Jacobian row is Eq. 9's A_j extended
-  by the scale column n_j·a_j. Written by hand: no library here does point-to-plane with scale.
+  by the scale column n_j·a_j. Written by hand: no library here does point-to-plane with scale;
+  the step is compiled with numba (_gauss_newton_step), the correspondences are pykdtree's.
 - Degrees of freedom: all 7 (rotation, translation, scale), with or without a prior; the
   cloud's apparent tilt is a systematic term of the measurement (below) and the Kalman update
   weighs it against the prior's. An earlier version held the tilt at the prior's whenever there
@@ -146,6 +147,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
+import numba
 import numpy as np
 import open3d as o3d
 from pykdtree.kdtree import KDTree
@@ -385,6 +387,7 @@ class FineTuner:
         self._T_ecef_enu = self._T_ecef_model = enu_sim3(model.origin)  # the model's ENU as loaded → ECEF
         self._T_enu_ecef = self._T_ecef_enu.inverse()
         _ = model._grid  # build the crop index now, not in the first (timed) refine
+        compile_kernels()  # and the ICP's compiled step
         self._crops = _CropCache(model, self.config.target_voxel_m)
         self._threadpools = ThreadpoolController()  # pykdtree's OpenMP runtime, limited per registration
 
@@ -759,6 +762,26 @@ def _scalar_update(x: np.ndarray, P: np.ndarray, i: int, z: float, var: float) -
     return x + K * (z - x[i]), 0.5 * (Pp + Pp.T)
 
 
+def _jit(fn):
+    """numba.njit (nogil) with numba's on-disk cache; without it where numba finds no writable cache
+    directory (a read-only install run without NUMBA_CACHE_DIR or a home: numba refuses to import
+    such a function), and then compile_kernels compiles at every start."""
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError as e:
+        log.warning("%s; compiling it at every start (set NUMBA_CACHE_DIR to a writable directory)", e)
+        return numba.njit(nogil=True)(fn)
+
+
+def compile_kernels() -> None:
+    """Compile the ICP's numba kernels for the argument types _icp passes them (or load them from
+    numba's on-disk cache: ``__pycache__`` beside this file, else NUMBA_CACHE_DIR / the user's cache
+    directory), so that the first registration does not pay for it: 8.5 s on the 2-core x86 VM
+    the first time, 0.3 s from the cache. Later calls cost microseconds."""
+    p = np.zeros((8, 3))
+    _gauss_newton_step(p, np.zeros(8, np.uint32), p, p, np.zeros(3), 1.0, np.eye(3), np.zeros(3), 1.0, 1.0)
+
+
 def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> Sim3:
     """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) over [rot, trans, log-scale] in
     coordinates centred at c, from T0.
@@ -775,36 +798,100 @@ def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentCo
     point seldom changes), the next step is solved on the same correspondences instead of a new
     query (two Gauss–Newton steps per query, as ICP variants with inner iterations do); a level
     ends on a converged step only when its correspondences were fresh (docs/BENCHMARKS.md,
-    "Fine-tuning cost")."""
-    s, R, t = T0.scale, T0.R, T0.t
+    "Fine-tuning cost"). Each step (_gauss_newton_step) is compiled; the query is pykdtree's."""
+    # contiguous float64 throughout: the argument types compile_kernels compiled for
+    s, R, t, c = float(T0.scale), np.ascontiguousarray(T0.R, float), np.ascontiguousarray(T0.t, float), np.ascontiguousarray(c, float)
     reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
     for level in range(3):
         max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
         k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
-        pts = src if level == 2 else src[::COARSE_LEVEL_STRIDE]
-        corr, step_m, fresh = None, math.inf, True
+        pts = np.ascontiguousarray(src if level == 2 else src[::COARSE_LEVEL_STRIDE], float)
+        j, step_m, fresh = None, math.inf, True
         for _ in range(ICP_ITERATIONS_PER_LEVEL):
-            fresh = corr is None or step_m >= CORR_REUSE_STEP_M or not fresh
+            fresh = j is None or step_m >= CORR_REUSE_STEP_M or not fresh
             if fresh:
-                corr = _correspondences(pts, crop, c, s, R, t, max_d)
-            p, n, b = corr
-            x, r = _residuals(p, n, b, s, R, t)
-            if len(r) < 7:
+                j = crop.tree.query(s * pts @ R.T + (t + c), distance_upper_bound=max_d)[1]
+            ok, s, R, t, step_m = _gauss_newton_step(pts, j, crop.points, crop.normals, c, s, R, t, k, reach_m)
+            if not ok:
                 break
-            w = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey biweight
-            J = _jacobian(x, n)
-            Jw = J * w[:, None]
-            H = Jw.T @ J
-            try:
-                delta = -np.linalg.solve(H + 1e-6 * np.trace(H) / 7 * np.eye(7), Jw.T @ r)
-            except np.linalg.LinAlgError:
-                break
-            Rd, sd = _rotvec_matrix(delta[:3]), float(np.exp(delta[6]))
-            s, R, t = sd * s, Rd @ R, sd * Rd @ t + delta[3:6]  # T ← δ ∘ T
-            step_m = np.linalg.norm(delta[3:6]) + (np.linalg.norm(delta[:3]) + abs(delta[6])) * s * reach_m
             if step_m < ICP_STEP_TOL_M and fresh:
                 break
     return Sim3(s, R, t)
+
+
+@_jit
+def _gauss_newton_step(p: np.ndarray, j: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray,
+                       c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray, kernel_m: float,
+                       reach_m: float) -> tuple[bool, float, np.ndarray, np.ndarray, float]:
+    """One Gauss–Newton step of _icp on the correspondences j: (ok, s, R, t, step_m) after
+    T ← δ ∘ T with δ = −(H + εI)⁻¹ g over [rot, trans, log-scale] (ε = 10⁻⁶ · trace(H)/7, a
+    Levenberg-style guard), and step_m the largest distance the step moved a point within reach_m
+    of the centre. ok is False (T unchanged) with fewer than 7 matched points or a singular H."""
+    H, g, matched = _normal_equations(p, j, model_points, model_normals, c, s, R, t, kernel_m)
+    if matched < 7:
+        return False, s, R, t, 0.0
+    A = H + 1e-6 * np.trace(H) / 7 * np.eye(7)
+    try:
+        delta = -np.linalg.solve(A, g)
+    except Exception:  # numba raises LinAlgError for a singular matrix
+        return False, s, R, t, 0.0
+    sd = math.exp(delta[6])
+    Rd = _rotvec_matrix(delta[:3])
+    R_new = Rd @ R
+    t_new = sd * (Rd @ t) + delta[3:6]
+    s_new = sd * s
+    step_m = (math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+              + (math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2) + abs(delta[6])) * s_new * reach_m)
+    return True, s_new, R_new, t_new, step_m
+
+
+@_jit
+def _normal_equations(p: np.ndarray, j: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray,
+                      c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
+                      kernel_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """(H, g, matched) of one Gauss–Newton step of digital-twin Eq. 2 with Tukey IRLS weights:
+    H = Σ w_i J_iᵀ J_i, g = Σ w_i J_iᵀ r_i over the source points p_i whose nearest model point j_i
+    exists (pykdtree gives j_i = len(model) for none within its bound), with x_i = s·R·p_i + t,
+    r_i = n·(x_i − (b − c)) and the rows J_i of _jacobian; ``matched`` counts those points, weighted
+    or not. w_i = (1 − (r_i/kernel_m)²)² inside the kernel, 0 outside.
+
+    Compiled with numba: the same sums in numpy took about 40 % of a registration's CPU as a dozen
+    array passes of ~1000 rows each (per-call overhead, not arithmetic); one loop over the points
+    does them in a single pass (docs/BENCHMARKS.md, "Fine-tuning cost")."""
+    H = np.zeros((7, 7))
+    g = np.zeros(7)
+    J = np.empty(7)
+    n_model = model_points.shape[0]
+    matched = 0
+    for i in range(p.shape[0]):
+        m = j[i]
+        if m >= n_model:
+            continue
+        matched += 1
+        x0 = s * (R[0, 0] * p[i, 0] + R[0, 1] * p[i, 1] + R[0, 2] * p[i, 2]) + t[0]
+        x1 = s * (R[1, 0] * p[i, 0] + R[1, 1] * p[i, 1] + R[1, 2] * p[i, 2]) + t[1]
+        x2 = s * (R[2, 0] * p[i, 0] + R[2, 1] * p[i, 1] + R[2, 2] * p[i, 2]) + t[2]
+        n0, n1, n2 = model_normals[m, 0], model_normals[m, 1], model_normals[m, 2]
+        r = (n0 * (x0 - (model_points[m, 0] - c[0])) + n1 * (x1 - (model_points[m, 1] - c[1]))
+             + n2 * (x2 - (model_points[m, 2] - c[2])))
+        if abs(r) >= kernel_m:
+            continue
+        u = r / kernel_m
+        w = (1.0 - u * u) ** 2
+        J[0] = x1 * n2 - x2 * n1
+        J[1] = x2 * n0 - x0 * n2
+        J[2] = x0 * n1 - x1 * n0
+        J[3], J[4], J[5] = n0, n1, n2
+        J[6] = n0 * x0 + n1 * x1 + n2 * x2
+        for a in range(7):
+            wa = w * J[a]
+            g[a] += wa * r
+            for b in range(a, 7):
+                H[a, b] += wa * J[b]
+    for a in range(7):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, matched
 
 
 def _evaluate(src: np.ndarray, crop: _Crop, c: np.ndarray, T: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> _Icp:
@@ -859,13 +946,15 @@ def _jacobian(x: np.ndarray, n: np.ndarray) -> np.ndarray:
     return J
 
 
+@_jit
 def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
     """Rodrigues: exp([w]×) = I + sin θ K + (1 − cos θ) K², K = [w/θ]×, θ = |w|."""
-    theta = float(np.sqrt(w @ w))
+    theta = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
     if theta < 1e-12:
-        return np.eye(3) + _skew(w)
-    K = _skew(w / theta)
-    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
+        return np.eye(3) + np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    u = w / theta
+    K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
 
 
 def _in_square(p_enu: np.ndarray, c_enu: np.ndarray, half_m: float) -> np.ndarray:
