@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _gauss_newton_step,
-                             _Icp, _jacobian, _measurement_cov, _normal_equations, _update, enu_sim3)
+from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Crop, _gauss_newton_step,
+                             _Icp, _jacobian, _measurement_cov, _nearest, _nearest_among, _normal_equations, _update, enu_sim3)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -494,9 +495,43 @@ def test_registrations_run_the_kernels_compiled_when_the_tuner_was_made(city):
     """FineTuner compiles the ICP step for the argument types registrations pass it (compile_kernels),
     so no registration compiles another variant (seconds, in the first registration of a flight)."""
     tuner = FineTuner(city)
-    assert len(_gauss_newton_step.signatures) == 1
+    assert len(_gauss_newton_step.signatures) == len(_nearest_among.signatures) == 1
     assert _register_at(tuner, city, np.array([27.0, -10.0, 0.0])).reason == "ok"
-    assert len(_gauss_newton_step.signatures) == 1
+    assert len(_gauss_newton_step.signatures) == len(_nearest_among.signatures) == 1
+
+
+class _CountingTree:
+    """pykdtree's KDTree, counting the points it is asked about."""
+
+    def __init__(self, points):
+        self.tree, self.n_queried = KDTree(points), 0
+
+    def query(self, q, **kw):
+        self.n_queried += len(q)
+        return self.tree.query(q, **kw)
+
+
+def test_nearest_from_candidates_is_the_kd_tree_answer_with_fewer_searches(city):
+    """_nearest keeps each point's nearest model points between ICP steps and searches again only
+    where they cannot decide: its answer must be the plain KD-tree query's at every step — small
+    steps, a jump, a smaller correspondence distance (the next ICP level) — for points on the model
+    and points with no model point in reach."""
+    pts = city.points_enu[np.all(np.abs(city.points_enu[:, :2] - [30.0, -10.0]) < 60, axis=1)]
+    tree = _CountingTree(pts)
+    crop = _Crop((0, 0, 0, 0), 25.0, pts, np.zeros_like(pts), tree, None)
+    rng = np.random.default_rng(4)
+    q = pts[rng.choice(len(pts), 600, replace=False)] + rng.normal(0.0, 0.4, (600, 3))
+    q[:60] += [0.0, 0.0, 8.0]  # no model point within reach (trees, noise)
+    cand, n_steps = None, 0
+    for max_d, moves in ((3.0, [0.2, 0.5, 0.05, 0.8, 0.02, 1.5, 0.02]), (1.5, [0.3, 0.05, 0.01]), (1.1, [0.3, 0.02, 0.01, 0.005])):
+        for step_m in moves:
+            q = q + rng.normal(0.0, step_m, 3) + rng.normal(0.0, step_m / 4, q.shape)  # a rigid-ish move
+            j, cand = _nearest(crop, q, max_d, cand)
+            n_steps += 1
+            want = tree.tree.query(q, distance_upper_bound=max_d)[1]
+            np.testing.assert_array_equal(j, want)
+            assert 0 < (j == len(pts)).sum() < len(q)  # both kinds of point
+    assert tree.n_queried < 0.5 * n_steps * len(q), tree.n_queried / (n_steps * len(q))
 
 
 def test_the_fine_tuner_compiles_where_no_numba_cache_directory_is_writable():
