@@ -856,7 +856,7 @@ def _nearest(crop: _Crop, q: np.ndarray, max_d: float, cand: _Candidates | None)
     radius − δ ≥ max_d and no candidate is within max_d, no point is. The other points are searched
     again (pykdtree, NN_CANDIDATES nearest within max_d + NN_SEARCH_MARGIN_M: the margin lets a
     point with no model point in reach keep that answer while it moves less than the margin).
-    Measured on 28 journaled registrations: identical alignments, a fifth of the points searched
+    Measured on 28 journaled registrations: identical alignments, 15 % of the points searched
     per step, registration CPU ×0.75 (docs/BENCHMARKS.md, "Fine-tuning cost"). Written here, not
     taken from a library: KD-tree libraries answer each query from scratch."""
     bound_m = max_d + NN_SEARCH_MARGIN_M
@@ -904,7 +904,7 @@ def _gauss_newton_step(p: np.ndarray, j: np.ndarray, model_points: np.ndarray, m
                        reach_m: float) -> tuple[bool, float, np.ndarray, np.ndarray, float]:
     """One Gauss–Newton step of _icp on the correspondences j: (ok, s, R, t, step_m) after
     T ← δ ∘ T with δ = −(H + εI)⁻¹ g over [rot, trans, log-scale] (ε = 10⁻⁶ · trace(H)/7, a
-    Levenberg-style guard), and step_m the largest distance the step moved a point within reach_m
+    Levenberg-style guard), and step_m a bound on how far the step moved any point within reach_m
     of the centre. ok is False (T unchanged) with fewer than 7 matched points or a singular H."""
     H, g, matched = _normal_equations(p, j, model_points, model_normals, c, s, R, t, kernel_m)
     if matched < 7:
