@@ -113,6 +113,8 @@ def test_the_worker_journals_its_registrations_and_a_replay_decides_as_the_fligh
     assert all(0.7 < r.scan.from_truth_err_h_m < 1.8 for r in rows)
     assert "started at the truth it settles" in format_rows(rows)
     assert "2 of 2 accepted" in format_rows(rows)
+    assert all(r.cpu_ms > 0 for r in rows)
+    assert f"registration CPU (thread time) mean {np.mean([r.cpu_ms for r in rows]):.1f} ms" in format_rows(rows)
 
     # as a chain, the second registration starts from the first one's replayed result, not its recorded prior
     chained = replay(records, city, config, read_truth(tmp_path), chain=True)

@@ -5,7 +5,9 @@
 Each recorded registration runs again through ``FineTuner.register`` with its recorded inputs
 (prior, points, crop centre, barometer, georeference correction) and, by default, the recorded
 alignment configuration; ``--set`` changes a setting of it (``--set slam_drift_fraction=0.06``),
-so a change to the measurement model is judged on a flight's real registrations in seconds.
+so a change to the measurement model is judged on a flight's real registrations in seconds; each
+line also gives the registration's CPU time (thread time, with the GIS crops cached as in flight
+order), and the last line their mean, for the cost of a change to the registration.
 With the journal's ``truth.npz`` each line says how far from the true camera (horizontally) the
 prior, the ICP alone and the fused result were, against what they claimed. ``--chain`` starts each
 registration from the one the replay accepted before it, as in a GNSS denial, so a changed setting
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -60,6 +63,7 @@ class Replayed:
     fitness: float
     spread_m: float
     nis: float
+    cpu_ms: float               # the registration's thread CPU time in this replay (crop cache as in flight order)
     scan: Scan | None = None
 
 
@@ -108,8 +112,10 @@ def replay(records: list[JournalRecord], model: GisModel, config: AlignmentConfi
         job = rec.job
         prior = last if chain and last is not None else job.initial
         tuner.set_correction(job.correction)
+        cpu0 = time.thread_time()
         reg = tuner.register(job.points_slam, prior, job.t_s, prior.reset_counter, job.center_slam,
                              prior.map_id, job.camera_h_ell_m, job.camera_h_sigma_m)
+        cpu_ms = 1e3 * (time.thread_time() - cpu0)
         last = reg.alignment or last
         tr = None if truth is None else truth.get(round(job.t_s, 3))
         camera = np.asarray(job.center_slam, float)[None]
@@ -119,16 +125,16 @@ def replay(records: list[JournalRecord], model: GisModel, config: AlignmentConfi
             job.t_s, reg.reason, _same(a, rec.alignment), _h_err(prior.T_ecef_slam.apply(camera)[0], tr),
             _h_err(None if reg.icp is None else reg.icp.p_ecef_m, tr), icp_sigma,
             _h_err(None if a is None else a.T_ecef_slam.apply(camera)[0], tr), reg.sigma_m if a is not None else math.nan,
-            reg.fitness, reg.spread_m, reg.nis, _scan(tuner, job.points_slam, prior, job.center_slam, tr) if scan else None))
+            reg.fitness, reg.spread_m, reg.nis, cpu_ms, _scan(tuner, job.points_slam, prior, job.center_slam, tr) if scan else None))
     return out
 
 
 def format_rows(rows: list[Replayed]) -> str:
-    lines = ["t [s]   prior err | ICP alone err (σ) | fused err (σ)  | fitness spread  NIS | flight | outcome"]
+    lines = ["t [s]   prior err | ICP alone err (σ) | fused err (σ)  | fitness spread  NIS |   CPU   | flight | outcome"]
     for r in rows:
         line = (f"{r.t_s:7.1f} {r.prior_err_h_m:6.2f} m | {r.icp_err_h_m:6.2f} m ({r.icp_sigma_h_m:4.2f}) | "
                 f"{r.fused_err_h_m:6.2f} m ({r.sigma_m:4.2f}) | {r.fitness:5.2f} {r.spread_m:5.1f} {r.nis:5.1f} | "
-                f"{'same' if r.as_in_flight else 'DIFF'}   | {r.reason[:70]}")
+                f"{r.cpu_ms:4.0f} ms | {'same' if r.as_in_flight else 'DIFF'}   | {r.reason[:70]}")
         if r.scan is not None:
             s = r.scan
             line += (f"\n        scan: {s.n_starts} starts reach {s.n_optima} optima, RMS {s.rms_m:.2f} m about their mean; "
@@ -140,6 +146,9 @@ def format_rows(rows: list[Replayed]) -> str:
         beyond = sum(r.fused_err_h_m > 3 * r.sigma_m for r in ok)
         lines.append(f"{len(ok)} of {len(rows)} accepted; fused horizontal error mean {np.mean([r.fused_err_h_m for r in ok]):.2f} m, "
                      f"{beyond} beyond 3σ; {sum(not r.as_in_flight for r in rows)} decided differently from the flight")
+    if rows:
+        lines.append(f"registration CPU (thread time) mean {np.mean([r.cpu_ms for r in rows]):.1f} ms, "
+                     f"max {max(r.cpu_ms for r in rows):.1f} ms over {len(rows)}")
     return "\n".join(lines)
 
 
