@@ -518,7 +518,7 @@ def test_nearest_from_candidates_is_the_kd_tree_answer_with_fewer_searches(city)
     and points with no model point in reach."""
     pts = city.points_enu[np.all(np.abs(city.points_enu[:, :2] - [30.0, -10.0]) < 60, axis=1)]
     tree = _CountingTree(pts)
-    crop = _Crop((0, 0, 0, 0), 25.0, pts, np.zeros_like(pts), tree, None)
+    crop = _Crop((0, 0, 0, 0), 25.0, pts, np.zeros_like(pts), tree)
     rng = np.random.default_rng(4)
     q = pts[rng.choice(len(pts), 600, replace=False)] + rng.normal(0.0, 0.4, (600, 3))
     q[:60] += [0.0, 0.0, 8.0]  # no model point within reach (trees, noise)
