@@ -128,13 +128,16 @@ the truth it stays at 0.15 m. 0 of 239 accepted registrations were beyond 3σ (l
 priors are refused. With a FINE prior (covariance intersection) the gain is smaller still. The
 limit is the SLAM cloud (numbers above), not the solver.
 
-Cost (issue 5): the KD-tree query of each ICP iteration dominates (pykdtree 0.28 µs per point,
-scipy's cKDTree 0.36, identical neighbours; real SLAM crops hold 200–1400 points after the voxel
-filter, and 4 ICPs × up to 36 iterations run). Levels
+Cost (issue 5): nearest-neighbour searches were most of it (pykdtree 0.28 µs per point, scipy's
+cKDTree 0.36, identical neighbours; real SLAM crops hold 200–1400 points after the voxel filter,
+and 4 ICPs × up to 36 iterations run); since 2026-12-07 a point is searched again only when its
+kept candidates cannot decide its nearest model point (_nearest), and each Gauss–Newton step is
+one compiled call (_gauss_newton_step). Levels
 stop once a step moves no point more than ICP_STEP_TOL_M; on real clouds the IRLS still creeps by
 centimetres at the end of a level, so most levels run their 12 iterations, as before. Measured
 on 28 real-SLAM map snapshots (nominal + stale, 400 frames, 7 priors each): thread CPU 135 → 80 ms
-mean per registration, same accuracy and integrity (docs/BENCHMARKS.md, "Fine-tuning cost").
+mean per registration, same accuracy and integrity; on 28 journaled registrations 70 → 35 ms with
+the two changes of 2026-12-07, identical alignments (docs/BENCHMARKS.md, "Fine-tuning cost").
 
 Thread-safe: the only state after construction is the crop cache (behind a lock) and the
 model's lazily built grid index (built once, eagerly, in the constructor).
@@ -311,7 +314,7 @@ class _Crop:
     def spacing_m(self, c_enu: np.ndarray, half_m: float) -> float:
         """Median nearest-neighbour distance of the crop's points within half_m of c_enu (≤ 300,
         taken in the crop's order: the same whichever covering crop is asked)."""
-        inner = np.flatnonzero(np.all(np.abs(self.points[:, :2] - c_enu[:2]) <= half_m, axis=1))
+        inner = np.flatnonzero(_in_square(self.points, c_enu, half_m))
         if len(inner) < 2:
             return 0.0
         sample = self.points[inner[:: max(1, len(inner) // 300)]]
@@ -456,7 +459,7 @@ class FineTuner:
                 return Registration(None, f"prior too vague: horizontal 1-σ {sig_prior:.1f} m at the crop centre > "
                                           f"{MAX_PRIOR_SIGMA_M} m (ICP's convergence basin)", n_source=len(src))
         crop, min_corr = self._target(c)
-        n_tgt = int(np.sum(np.all(np.abs(crop.points[:, :2] - c[:2]) <= half, axis=1)))
+        n_tgt = int(np.sum(_in_square(crop.points, c, half)))
         if n_tgt < cfg.min_points:
             return Registration(None, f"GIS crop holds only {n_tgt} points (outside the model?)", n_target=n_tgt)
         k = float("nan")
@@ -696,7 +699,7 @@ def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: fl
     untested = ScaleCheck(float("nan"), float("nan"), float("nan"), len(near), tolerance)
     if len(near) < NADIR_MIN_POINTS:
         return untested
-    local = np.flatnonzero(np.all(np.abs(crop.points[:, :2] - c[:2]) <= radius_m + SURFACE_RADIUS_M, axis=1))
+    local = np.flatnonzero(_in_square(crop.points, c, radius_m + SURFACE_RADIUS_M))
     if len(local) < len(crop.points) // 2:  # a registration's check: a tree over the points it can reach
         hits = [local[h] for h in cKDTree(crop.points[local, :2], balanced_tree=False).query_ball_point(
             near[:, :2] + c[:2], SURFACE_RADIUS_M)]
@@ -1099,7 +1102,7 @@ def _voxel_global(p: np.ndarray, n: np.ndarray, voxel_m: float) -> tuple[np.ndar
 def _fpfh_guess(src: np.ndarray, crop: _Crop, c: np.ndarray, half_m: float, cfg: AlignmentConfig) -> Sim3 | None:
     """Global registration from FPFH features + RANSAC (open3d), rigid (scale is close already)."""
     reg = o3d.pipelines.registration
-    inner = np.all(np.abs(crop.points[:, :2] - c[:2]) <= half_m, axis=1)
+    inner = _in_square(crop.points, c, half_m)
     tgt, tgt_n = crop.points[inner] - c, crop.normals[inner]
     voxel = max(cfg.target_voxel_m, cfg.source_voxel_m) * 2
     s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)).voxel_down_sample(voxel)
