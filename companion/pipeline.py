@@ -425,6 +425,10 @@ def _register_in_worker(points: np.ndarray, initial: Alignment, center: np.ndarr
     return reg.alignment, reg.reason, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, reg.icp
 
 
+def _prefetch_in_worker() -> bool:
+    return _TUNER.prefetch_crop()
+
+
 def _check_scale_in_worker(points: np.ndarray, alignment: Alignment, center: np.ndarray, camera_h_ell_m: float,
                            correction: GeorefCorrection | None) -> ScaleCheck:
     _TUNER.set_correction(correction)
@@ -462,6 +466,7 @@ class FineTuneWorker:
         self.checking = threading.Event()  # a scale check in flight
         self.wall_ms: list[float] = []
         self.cpu_ms: list[float] = []
+        self.n_prefetched = 0  # GIS crops built ahead of a registration (_prefetch)
         self.correction: GeorefCorrection | None = None  # sent with every job
         self.journal: Journal | None = None  # writes each registration's inputs and outcome (gis.align.journal)
         self._lock = threading.Lock()
@@ -538,8 +543,28 @@ class FineTuneWorker:
                 log.warning("registration journal not written: %s", e)
         try:  # busy until the result is adopted: whoever sees the worker free sees its alignment
             self._on_result(alignment, reason, ms, icp)
+            self._prefetch()  # queued before the next registration can be
         finally:
             self.busy.clear()
+
+    def _prefetch(self) -> None:
+        """The worker builds the next registration's GIS crop in its idle time after this one
+        (FineTuner.prefetch_crop), so that registration, and the fix that waits for it, need not.
+        Best effort: a closed or dead worker just builds the crop when it is asked for."""
+        try:
+            fut = self._proc.submit(_prefetch_in_worker)
+        except (RuntimeError, BrokenProcessPool) as e:
+            log.debug("GIS crop not prefetched: %s: %s", type(e).__name__, e)
+            return
+        fut.add_done_callback(self._prefetched)
+
+    def _prefetched(self, fut: Future) -> None:
+        if fut.cancelled():
+            return
+        if fut.exception() is not None:
+            log.warning("GIS crop prefetch failed: %s: %s", type(fut.exception()).__name__, fut.exception())
+        elif fut.result():
+            self.n_prefetched += 1
 
     def close(self) -> None:
         self._proc.close()

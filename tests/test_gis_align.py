@@ -596,6 +596,60 @@ def test_registration_near_the_crop_border_recrops(city):
     _same_registration(reg, _register_at(FineTuner(city), city, c3))
 
 
+def test_a_prefetched_crop_covers_the_next_registration_along_the_track(city):
+    """After two registrations 30 m apart, prefetch_crop builds the crop a third one 30 m further
+    on needs (the worker does it in its idle time): that registration builds none, and registers
+    exactly as a fresh tuner does. Nothing to guess from fewer than two registrations, nor once
+    the crop covers the guess; a registration away from the guess builds its own crop."""
+    c1, c2, c3 = (np.array([x, -10.0, 0.0]) for x in (-40.0, -10.0, 20.0))
+    tuner = FineTuner(city)
+    assert not tuner.prefetch_crop()
+    assert _register_at(tuner, city, c1, seed=5).reason == "ok"
+    assert not tuner.prefetch_crop() and tuner._crops.n_built == 1
+    assert _register_at(tuner, city, c2, seed=6).reason == "ok"
+    built = tuner._crops.n_built
+    half = tuner.config.crop_size_m / 2 + tuner.config.max_correspondence_m
+    assert c3[0] + half > (tuner._crops.last().box[2] + 1) * tuner._crops.last().tile_m  # c3 needs a new crop
+    assert tuner.prefetch_crop() and tuner._crops.n_built == built + 1
+    assert not tuner.prefetch_crop() and tuner._crops.n_built == built + 1  # it covers the guess already
+    reg = _register_at(tuner, city, c3)
+    assert tuner._crops.n_built == built + 1  # found it built
+    _same_registration(reg, _register_at(FineTuner(city), city, c3))
+    back = np.array([-120.0, -10.0, 0.0])  # the other way: outside the prefetched crop
+    reg = _register_at(tuner, city, back)
+    assert tuner._crops.n_built == built + 2
+    _same_registration(reg, _register_at(FineTuner(city), city, back))
+
+
+def test_the_worker_prefetches_the_next_crop_after_a_registration(city):
+    """FineTuneWorker asks its process to build the next registration's crop once a registration
+    is adopted (FineTuner.prefetch_crop): after the second of two registrations along a line it
+    has built one, and the third registration (its crop prefetched) equals an in-process one."""
+    import time
+
+    from companion.pipeline import FineTuneWorker
+
+    adopted = []
+    worker = FineTuneWorker(FineTuner(city), lambda a, r, ms, icp: adopted.append((a, r)))
+    jobs = []
+    for x, seed in ((-40.0, 5), (-10.0, 6), (20.0, 2)):
+        cam = np.array([x, -10.0, 60.0])
+        jobs.append((_slam(slam_like_cloud(city, cam - [0, 0, 60.0], 60, 3000, noise_m=0.05, seed=seed)),
+                     _prior_about(cam, (0.6, -0.5, 0.2)), _slam(cam)))
+    try:
+        for i, (p, prior, c) in enumerate(jobs):
+            assert worker.submit(p, prior, c, float(i))
+            deadline = time.monotonic() + 60.0
+            while (worker.busy.is_set() or (i == 1 and worker.n_prefetched < 1)) and time.monotonic() < deadline:
+                time.sleep(0.002)
+        assert worker.n_prefetched >= 1
+        assert [r for _, r in adopted] == ["ok"] * 3, adopted
+        alone = FineTuner(city).register(*jobs[2][:2], 2.0, 0, center_slam=jobs[2][2])
+        np.testing.assert_allclose(adopted[2][0].T_ecef_slam.matrix(), alone.alignment.T_ecef_slam.matrix(), rtol=0, atol=1e-9)
+    finally:
+        worker.close()
+
+
 @pytest.mark.parametrize("shrink, refused", [(1.0, False), (1.08, True)])
 def test_barometer_refuses_a_map_whose_scale_broke_under_the_camera(city, shrink, refused):
     """Demo seed 4's failure: the map under the camera shrank 8 % in a turn while the alignment kept
