@@ -277,6 +277,24 @@ def load_gis_model(cfg: AppConfig, cache: GisCache, site_id: str | None = None) 
     return cache.load_model(site_id), site_id, path
 
 
+KERNEL_COMPILE_TIMEOUT_S = 600.0  # start-up time granted to compile fine-tuning's kernels (8.5 s on a 2-core x86 VM)
+
+
+def _compile_kernels() -> None:
+    """Fine-tuning's numba kernels, compiled (the first start; NUMBA_CACHE_DIR keeps them) or
+    loaded from numba's cache (0.3 s) before the localizer is built, with the start timeout
+    extended meanwhile: a small board compiles for much longer than the x86 VM's 8.5 s, and with
+    the GIS model's loading that could pass TimeoutStartSec (120 s) on the first start."""
+    from companion import notify
+    from gis.align.fine import compile_kernels
+
+    notify.status("starting: fine-tuning kernels (numba: compiled at the first start, cached after)")
+    notify.extend_timeout(KERNEL_COMPILE_TIMEOUT_S)
+    t0 = time.monotonic()
+    compile_kernels()
+    log.info("fine-tuning kernels ready in %.1f s", time.monotonic() - t0)
+
+
 def run_service(cfg: AppConfig) -> int:
     """Run until SIGTERM/SIGINT or a required stage fails; returns the process exit code."""
     from companion.app import build_localizer, open_journal
@@ -306,6 +324,8 @@ def run_service(cfg: AppConfig) -> int:
         log.error("cannot choose the GIS site: %s", e)
         bridge.close()
         return 1
+    if model is not None:
+        _compile_kernels()
     source, T_body_cam = _open_camera(cfg)
     restored = load_saved(cfg, source.camera_model, site_id) if cfg.persistence.enabled else None
     if cfg.gis.use_survey_map and (restored is None or restored.alignment is None):
