@@ -314,12 +314,14 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
                         else ("gps_input" if autopilot == "ardupilot" else "odometry"))
     clock = SimClock()
     params = {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if autopilot == "ardupilot" else {}
-    ap = SimAutopilot(autopilot, params=params, clock=clock).start()
+    ap = SimAutopilot(autopilot, params=params, clock=clock, heartbeat_on_new_peer=True).start()
     mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
     localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable, p_body_gnss_m=p_body_gnss_m)
     if localizer.worker is not None:
         localizer.worker.journal = journal
+    if repeatable:
+        _wait_link(bridge, REPEATABLE_DELIVERY_TIMEOUT_S)
     out_msg = output.upper()  # the fix message; heartbeats etc. are not fixes
     run, alignments, last_key = RunLog(), [], None
     try:
@@ -417,6 +419,18 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
     summary["outputs"] = [str(p) for p in write_outputs(run, summary, out_dir, scenario.origin, "TerraSLAM demo")]
     write_report(summary, out_dir / "report.json", out_dir / "report.md", title="TerraSLAM demo")
     return summary
+
+
+def _wait_link(bridge, timeout_s: float) -> None:
+    """Repeatable simulated flight: the bridge has the autopilot's HEARTBEAT (link up) before the
+    first frame, so what the first frames see does not depend on how fast the two threads
+    started."""
+    t_end = time.monotonic() + timeout_s
+    while not bridge.stats().link_up:
+        if time.monotonic() >= t_end:
+            log.warning("repeatable run: no HEARTBEAT from the simulated autopilot after %.0f s; going on", timeout_s)
+            return
+        time.sleep(0.001)
 
 
 def _wait_delivered(bridge, ap, t_s: float, timeout_s: float):

@@ -88,7 +88,10 @@ class _Pos:
 class SimAutopilot:
     def __init__(self, personality: str, port: int = 0, *, sysid: int = 1, compid: int = 1,
                  ekf_start_s: float | None = None, params: dict | None = None,
-                 signing_key: bytes | None = None, clock=time.monotonic, gnss_report_lag_s: float = 0.0):
+                 signing_key: bytes | None = None, clock=time.monotonic, gnss_report_lag_s: float = 0.0,
+                 heartbeat_on_new_peer: bool = False):
+        """``heartbeat_on_new_peer``: answer a new peer's first message with a HEARTBEAT at once
+        instead of at the next 1 Hz tick (for a simulated ``clock``, _run)."""
         if personality not in PERSONALITIES:
             raise ValueError(f"personality must be one of {PERSONALITIES}, got {personality!r}")
         self.personality, self.sysid, self.compid, self.clock = personality, sysid, compid, clock
@@ -102,7 +105,9 @@ class SimAutopilot:
         self.port = self._conn.port.getsockname()[1]
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        self._sent_seq: int | None = None
+        self._sent_seq: int | None = None  # of the last message written to a peer
+        self._peers = 0  # peers (UDP addresses) heard from so far
+        self._heartbeat_on_new_peer = heartbeat_on_new_peer
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._rx = Received()
@@ -197,7 +202,8 @@ class SimAutopilot:
         try:
             with self._send_lock:
                 self._conn.mav.send(msg)
-                self._sent_seq = msg.get_seq()
+                if getattr(self._conn, "clients", True):  # udpin: written only once a peer has spoken
+                    self._sent_seq = msg.get_seq()
         except OSError:  # no peer yet / peer gone: a real autopilot just keeps streaming
             pass
 
@@ -325,6 +331,14 @@ class SimAutopilot:
             if msg is not None:
                 with self._lock:
                     self._handle(msg, now)
+            peers = len(getattr(self._conn, "clients", ()))
+            if peers > self._peers and self._heartbeat_on_new_peer:
+                # A new peer spoke: our HEARTBEAT now, not at the next 1 Hz tick. A real autopilot's
+                # comes within a second; on a simulated clock, which moves only with the frames,
+                # that second is ten frames the bridge cannot see us (a repeatable flight waited
+                # 10 s of real time on each: REPEATABLE_DELIVERY_TIMEOUT_S in companion.app).
+                self._next_s[0] = -math.inf
+            self._peers = peers
             self._tick(now)
 
     def _handle(self, msg, now: float) -> None:

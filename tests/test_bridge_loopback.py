@@ -357,3 +357,28 @@ def test_autopilot_sequence_numbers_show_the_last_message_and_the_lost_ones(rigs
     rig.fly(0.5)
     assert _seen_last(rig)
     assert rig.bridge.stats().lost == 5
+
+
+@pytest.mark.parametrize("on_new_peer", [False, True])
+def test_a_simulated_clock_autopilot_answers_a_new_peer_with_a_heartbeat(on_new_peer):
+    """On a simulated clock (moved by a flight's frames; here it stands at 0) the autopilot's 1 Hz
+    HEARTBEAT is due again only at 1 s: its first one, sent before the bridge spoke, reached no one,
+    and the link stays down (a repeatable flight from t = 0 waited 10 s of real time on each of
+    its first ten frames). With heartbeat_on_new_peer it answers the bridge's first message, and
+    the link is up with the clock still at 0."""
+    from companion.app import SimClock
+
+    clock = SimClock()
+    sim = SimAutopilot("ardupilot", clock=clock, heartbeat_on_new_peer=on_new_peer).start()
+    time.sleep(0.1)  # its first tick (HEARTBEAT due at 0) has passed, with no peer yet
+    bridge = Bridge(MavlinkConfig(connect=f"udpout:127.0.0.1:{sim.port}"), SwitchingConfig(), clock=clock).start()
+    try:
+        deadline = time.monotonic() + 3.0
+        while not bridge.stats().link_up and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bridge.stats().link_up is on_new_peer and clock() == 0.0
+        assert sim.received().counts["HEARTBEAT"] >= 1  # the bridge's reached it either way
+        assert (sim.last_sent_seq() is not None) is on_new_peer  # nothing was written to a peer without it
+    finally:
+        bridge.close()
+        sim.close()
