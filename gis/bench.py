@@ -5,7 +5,8 @@
 - ``finetune_timing`` / ``size_sweep``: wall time of one fine-tuning registration on the pipeline's
   path (prior-aware, cold and reused crop), and its ratio between a 1 km² and a 100 km² GIS model
   (the fixed-size crop keeps it flat), the models mapped from a GIS cache as the service maps
-  them, with the RAM they cost.
+  them, with the RAM they cost; ``track_timing``: registrations along a track, with the next
+  registration's crop built ahead in the worker's idle time (FineTuner.prefetch_crop) or not.
 - ``replay_flight``: Globalizer error against truth along a flight, with SLAM stood in for by
   truth in a scaled/rotated frame plus random-walk drift (no images, no real SLAM: it measures
   the alignment + globalization chain only), fine-tuning every N frames, and the integrity
@@ -126,6 +127,37 @@ def finetune_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m:
             "cold_median_ms": float(np.median(cold)), "warm_median_ms": float(np.median(warm))}
 
 
+def track_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m: float = 40.0) -> dict:
+    """Wall time (ms) of registrations along a straight track, step_m apart (a registration every
+    5 s at 8 m/s), at n_repeats random places, with the fine-tuning worker's idle step after each
+    (FineTuner.prefetch_crop, timed apart): the second registration of a place moved out of its
+    crop and builds a new one; after it the worker builds the third's ahead, so that one finds it."""
+    tuner = FineTuner(model)
+    rng = np.random.default_rng(seed)
+    lo, hi = model.bounds_enu
+    built, prefetched, ahead = [], [], []
+    for k in range(n_repeats):
+        c0 = np.array([*rng.uniform(lo[:2] + 250, hi[:2] - 250), 0.0])
+        for i in range(3):
+            c = c0 + np.array([i * step_m, 0.0, 0.0])
+            cam = c + np.array([0.0, 0.0, 60.0])
+            p_slam = T_ENU_SLAM.inverse().apply(slam_like_cloud(model, c, 60, 3000, 0.05, seed + 3 * k + i))
+            a0 = _gnss_like_prior(model, c, cam)
+            n0, t0 = tuner._crops.n_built, time.perf_counter()
+            tuner.register(p_slam, a0, 0.0, 0, center_slam=a0.center_slam)
+            ms = 1e3 * (time.perf_counter() - t0)
+            if i == 1 and tuner._crops.n_built > n0:
+                built.append(ms)
+            elif i == 2 and tuner._crops.n_built == n0:
+                prefetched.append(ms)
+            t0 = time.perf_counter()
+            if tuner.prefetch_crop():
+                ahead.append(1e3 * (time.perf_counter() - t0))
+    return {"n_places": n_repeats, "built_median_ms": float(np.median(built)) if built else float("nan"),
+            "prefetched_median_ms": float(np.median(prefetched)) if prefetched else float("nan"),
+            "n_prefetched": len(prefetched), "prefetch_median_ms": float(np.median(ahead)) if ahead else float("nan")}
+
+
 def size_sweep(extents_m: tuple[float, ...] = (1000.0, 10000.0), spacing_m: float = 3.0) -> list[dict]:
     """finetune_timing on box cities of each extent (same density) as the service meets them:
     saved to a GIS cache, then mapped from it in a fresh process, whose anonymous memory after the
@@ -238,6 +270,10 @@ def main() -> None:
     r = finetune_timing(model)
     print(f"fine-tune on the 1 km² model at its default 1 m sampling ({r['n_model_points']} pts): "
           f"median {r['median_ms']:.1f} ms (cold crop {r['cold_median_ms']:.1f}, reused {r['warm_median_ms']:.1f}), P90 {r['p90_ms']:.1f} ms")
+    r = track_timing(model)
+    print(f"fine-tune along a track (40 m between registrations): the crop built in the registration "
+          f"{r['built_median_ms']:.1f} ms, built ahead in the worker's idle time (in {r['prefetch_median_ms']:.1f} ms) "
+          f"{r['prefetched_median_ms']:.1f} ms ({r['n_prefetched']} of {r['n_places']} places found it built)")
     T_body_cam = np.eye(4)
     T_body_cam[:3, :3] = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0.0]])
     for every in (200, 50):

@@ -621,6 +621,16 @@ def test_a_prefetched_crop_covers_the_next_registration_along_the_track(city):
     _same_registration(reg, _register_at(FineTuner(city), city, back))
 
 
+def test_track_timing_finds_the_third_registrations_crop_built_ahead(city):
+    """gis.bench.track_timing (its figures are what `python -m gis.bench` prints): at each place
+    the second registration 40 m on builds its crop, the worker's step builds the third's."""
+    from gis.bench import track_timing
+
+    r = track_timing(city, n_repeats=2)
+    assert r["n_places"] == 2 and r["n_prefetched"] == 2
+    assert all(0.0 < r[k] < 60e3 for k in ("built_median_ms", "prefetched_median_ms", "prefetch_median_ms"))
+
+
 def test_the_worker_prefetches_the_next_crop_after_a_registration(city):
     """FineTuneWorker asks its process to build the next registration's crop once a registration
     is adopted (FineTuner.prefetch_crop): after the second of two registrations along a line it
