@@ -361,16 +361,15 @@ class _CropCache:
     def prefetch(self, slot: str = "registration") -> bool:
         """Build, ahead of time, the crop the slot's next request will probably need, so that
         request finds it built (the next registration then skips voxelising its new tiles and the
-        KD-tree: a quarter to a third of a registration's CPU on the journals of a moving
-        camera, which needed a new crop every time). The guess: the next request lies as far on
-        from the last one as that one from the one before (at most PREFETCH_MAX_STEP_M); the crop
-        covers both the last request's box and the guessed one's, PREFETCH_MARGIN_M wider for a
-        turn, so any request along the way
-        is covered too (a registration every 20 s while GNSS is trusted, every 5 s in a denial,
-        at the same speed, lands between them). True when a crop was built; False when fewer
-        than two requests were made or the slot's crop already covers the guess. Any crop
-        covering a request gives it the same points in the same order (_Crop), so a prefetched
-        crop changes no result, only when the work is done."""
+        KD-tree: about a quarter of a registration's CPU on the journals of a moving camera, which
+        needed a new crop every time). The guess: the next request lies as far on from the last
+        one as that one from the one before (at most PREFETCH_MAX_STEP_M); the crop covers both
+        the last request's box and the guessed one's, PREFETCH_MARGIN_M wider for a turn, so any
+        request along the way is covered too (a registration every 20 s while GNSS is trusted,
+        then every 5 s in a denial, at the same speed, lands between them). True when a crop was
+        built; False when fewer than two requests were made or the slot's crop already covers
+        the guess. Any crop covering a request gives it the same points in the same order
+        (_Crop), so a prefetched crop changes no result, only when the work is done."""
         with self._lock:
             asked = self._asked.get(slot)
             if asked is None or len(asked) < 2:
