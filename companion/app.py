@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import threading
@@ -315,6 +316,16 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
     clock = SimClock()
     params = {"GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0} if autopilot == "ardupilot" else {}
     ap = SimAutopilot(autopilot, params=params, clock=clock, heartbeat_on_new_peer=True).start()
+    steps = iter(steps)
+    first = next(steps, None)
+    if first is not None:
+        # The link comes up (the autopilot answers the bridge's first HEARTBEAT at once) at the first
+        # frame's time and with its attitude, as when the flight starts: not at 0 with the link then
+        # timing out across the jump to a later first frame, nor with a stale ATTITUDE streamed.
+        for a in first.attitude:
+            ap.feed_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad)
+        clock.advance_to(first.frame.t_s)
+        steps = itertools.chain([first], steps)
     mav_cfg = cfg.mavlink.model_copy(update={"connect": f"udpout:127.0.0.1:{ap.port}", "autopilot": autopilot, "output": output})
     bridge = Bridge(mav_cfg, cfg.switching, clock=clock).start()
     localizer = build_localizer(cfg, camera, T_body_cam, model, repeatable=repeatable, p_body_gnss_m=p_body_gnss_m)
@@ -422,13 +433,21 @@ def run_demo(cfg: AppConfig, out_dir: Path, opts: DemoOptions = DemoOptions(),
 
 
 def _wait_link(bridge, timeout_s: float) -> None:
-    """Repeatable simulated flight: the bridge has the autopilot's HEARTBEAT (link up) before the
-    first frame, so what the first frames see does not depend on how fast the two threads
-    started."""
+    """Repeatable simulated flight: before the first frame the link is up and the autopilot has
+    answered the bridge's last request of the link-up (REQUEST_MESSAGE, after the stream
+    intervals; one UDP socket, handled in order), so the first frame's GNSS is streamed whatever
+    the two threads' speed."""
+    from pymavlink.dialects.v20.ardupilotmega import MAV_CMD_REQUEST_MESSAGE
+
     t_end = time.monotonic() + timeout_s
-    while not bridge.stats().link_up:
+    while True:
+        try:  # the bridge's thread adds to the counter meanwhile
+            if any(cmd == MAV_CMD_REQUEST_MESSAGE for cmd, _ in list(bridge.stats().acks)):
+                return
+        except RuntimeError:  # changed size while copied: look again
+            pass
         if time.monotonic() >= t_end:
-            log.warning("repeatable run: no HEARTBEAT from the simulated autopilot after %.0f s; going on", timeout_s)
+            log.warning("repeatable run: the simulated autopilot did not answer the link-up after %.0f s; going on", timeout_s)
             return
         time.sleep(0.001)
 
