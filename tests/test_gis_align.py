@@ -697,13 +697,39 @@ def test_scale_check_between_registrations_reads_the_points_the_camera_sees(city
     h_cam = float(ecef_to_geodetic(enu_sim3(ORIGIN).apply(cam[None]))[2][0])
     tuner = FineTuner(city)
     chk = tuner.check_scale(_slam(seen), _prior_about(cam, (0.3, -0.2, 0.1)), _slam(cam), h_cam - 0.4)
-    assert chk.n_points >= 80 and chk.low <= chk.ratio <= chk.high  # (points near roof edges untested)
+    assert chk.n_points >= 50 and chk.low <= chk.ratio <= chk.high  # (points near roof edges and walls untested)
     if on_trees == 0:
         assert chk.ratio == pytest.approx(shrink, abs=0.015)
     else:
         assert chk.ratio > 1.15  # the median alone would flag every map over trees
     assert chk.mismatch is (shrink != 1.0), chk.describe()
     assert not tuner.check_scale(_slam(seen[:10]), _prior_about(cam, (0.3, -0.2, 0.1)), _slam(cam), h_cam).mismatch  # too few: no verdict
+
+
+@pytest.mark.parametrize("shrink", [1.0, 1.15])
+def test_scale_check_is_not_fooled_by_facade_points_off_their_wall(city, shrink):
+    """Most of what a camera sees of a city can be facades, and a triangulated point lands a metre
+    or two off its wall; within SURFACE_RADIUS_M it then finds only the ground, and reads the
+    facade's height above it as scale (`loop` seed 1: lower quartile 1.17–1.18, fixes withheld for
+    the rest of a denial while the track kept its scale). Points with a wall of the model within
+    WALL_RADIUS_M are not tested: a map at the alignment's scale passes, a shrunk one is still
+    flagged (its points away from walls moved)."""
+    cam = np.array([20.0, -10.0, 60.0])
+    near = np.flatnonzero(np.hypot(*(city.points_enu[:, :2] - cam[:2]).T) < 60.0)
+    rng = np.random.default_rng(3)
+    wall = near[(np.abs(city.normals_enu[near, 2]) < 0.3) & (city.points_enu[near, 2] > 3.0)]
+    level = near[np.abs(city.normals_enu[near, 2]) > 0.9]
+    level = level[KDTree(city.points_enu[wall]).query(city.points_enu[level], k=1)[0] > 6.0]  # open ground, roof middles
+    pick = rng.choice(wall, 400, replace=False)
+    off = city.points_enu[pick] + 1.8 * city.normals_enu[pick]  # 1.8 m off the facade, outwards
+    seen = np.vstack([off, city.points_enu[rng.choice(level, 60, replace=False)]])
+    seen = cam + (seen - cam) / shrink
+    h_cam = float(ecef_to_geodetic(enu_sim3(ORIGIN).apply(cam[None]))[2][0])
+    chk = FineTuner(city).check_scale(_slam(seen), _prior_about(cam, (0.0, 0.0, 0.0)), _slam(cam), h_cam)
+    assert chk.n_points >= 20, chk.describe()
+    assert chk.mismatch is (shrink != 1.0), chk.describe()
+    if shrink == 1.0:
+        assert chk.ratio == pytest.approx(1.0, abs=0.03), chk.describe()
 
 
 class _FlightSlam:
