@@ -104,6 +104,17 @@ def _gnss_like_prior(model: GisModel, c_enu: np.ndarray, cam_enu: np.ndarray) ->
                      scale_sigma=0.01)
 
 
+def _timed_registration(tuner: FineTuner, model: GisModel, c_ground_enu: np.ndarray, seed: int) -> float:
+    """Wall time (ms) of one FineTuner.register as the pipeline calls it: 3000 SLAM-like points
+    about c_ground_enu, a GNSS-like prior centred on the camera 60 m above it."""
+    cam = c_ground_enu + np.array([0.0, 0.0, 60.0])
+    p_slam = T_ENU_SLAM.inverse().apply(slam_like_cloud(model, c_ground_enu, 60, 3000, 0.05, seed))
+    a0 = _gnss_like_prior(model, c_ground_enu, cam)
+    t0 = time.perf_counter()
+    tuner.register(p_slam, a0, 0.0, 0, center_slam=a0.center_slam)
+    return 1e3 * (time.perf_counter() - t0)
+
+
 def finetune_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m: float = 10.0) -> dict:
     """Wall time (ms) of FineTuner.register as the pipeline calls it (GNSS-like prior centred on the
     camera, 60 m above the ground; 3000 SLAM-like points) at n_repeats random places: at each, a
@@ -116,12 +127,7 @@ def finetune_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m:
     for k in range(n_repeats):
         c0 = np.array([*rng.uniform(lo[:2] + 200, hi[:2] - 200), 0.0])
         for c, times in ((c0, cold), (c0 + np.array([step_m, 0.0, 0.0]), warm)):
-            cam = c + np.array([0.0, 0.0, 60.0])
-            p_slam = T_ENU_SLAM.inverse().apply(slam_like_cloud(model, c, 60, 3000, 0.05, seed + k))
-            a0 = _gnss_like_prior(model, c, cam)
-            t0 = time.perf_counter()
-            tuner.register(p_slam, a0, 0.0, 0, center_slam=a0.center_slam)
-            times.append(1e3 * (time.perf_counter() - t0))
+            times.append(_timed_registration(tuner, model, c, seed + k))
     both = cold + warm
     return {"n_model_points": len(model), "median_ms": float(np.median(both)), "p90_ms": float(np.percentile(both, 90)),
             "cold_median_ms": float(np.median(cold)), "warm_median_ms": float(np.median(warm))}
@@ -139,13 +145,8 @@ def track_timing(model: GisModel, n_repeats: int = 15, seed: int = 0, step_m: fl
     for k in range(n_repeats):
         c0 = np.array([*rng.uniform(lo[:2] + 250, hi[:2] - 250), 0.0])
         for i in range(3):
-            c = c0 + np.array([i * step_m, 0.0, 0.0])
-            cam = c + np.array([0.0, 0.0, 60.0])
-            p_slam = T_ENU_SLAM.inverse().apply(slam_like_cloud(model, c, 60, 3000, 0.05, seed + 3 * k + i))
-            a0 = _gnss_like_prior(model, c, cam)
-            n0, t0 = tuner._crops.n_built, time.perf_counter()
-            tuner.register(p_slam, a0, 0.0, 0, center_slam=a0.center_slam)
-            ms = 1e3 * (time.perf_counter() - t0)
+            n0 = tuner._crops.n_built
+            ms = _timed_registration(tuner, model, c0 + np.array([i * step_m, 0.0, 0.0]), seed + 3 * k + i)
             if i == 1 and tuner._crops.n_built > n0:
                 built.append(ms)
             elif i == 2 and tuner._crops.n_built == n0:
