@@ -413,12 +413,18 @@ def test_fine_prior_scale_drifts_with_distance(city, drift_per_100m, recovered):
         e = np.linalg.norm(reg.alignment.T_ecef_slam.apply(_slam(cam1)) - T_ECEF_SLAM.apply(_slam(cam1)))
         assert e <= 3 * reg.alignment.sigma_m
 
-def _register_at(tuner, city, c_ground, seed=2):
-    """A clean SLAM-like cloud around c_ground registered with a GNSS-like prior 0.8 m off at the
-    camera 60 m above it (the pipeline's prior-aware path)."""
+def _registration_inputs(city, c_ground, seed=2):
+    """(SLAM points, prior, camera centre in SLAM coordinates): a clean SLAM-like cloud around
+    c_ground and a GNSS-like prior 0.8 m off at the camera 60 m above it."""
     cam = c_ground + np.array([0.0, 0.0, 60.0])
     p_slam = _slam(slam_like_cloud(city, c_ground, 60, 3000, noise_m=0.05, seed=seed))
-    return tuner.register(p_slam, _prior_about(cam, (0.6, -0.5, 0.2)), 1.0, 0, center_slam=_slam(cam))
+    return p_slam, _prior_about(cam, (0.6, -0.5, 0.2)), _slam(cam)
+
+
+def _register_at(tuner, city, c_ground, seed=2):
+    """_registration_inputs registered (the pipeline's prior-aware path)."""
+    p_slam, prior, cam = _registration_inputs(city, c_ground, seed)
+    return tuner.register(p_slam, prior, 1.0, 0, center_slam=cam)
 
 
 def _same_registration(a, b):
@@ -641,11 +647,7 @@ def test_the_worker_prefetches_the_next_crop_after_a_registration(city):
 
     adopted = []
     worker = FineTuneWorker(FineTuner(city), lambda a, r, ms, icp: adopted.append((a, r)))
-    jobs = []
-    for x, seed in ((-40.0, 5), (-10.0, 6), (20.0, 2)):
-        cam = np.array([x, -10.0, 60.0])
-        jobs.append((_slam(slam_like_cloud(city, cam - [0, 0, 60.0], 60, 3000, noise_m=0.05, seed=seed)),
-                     _prior_about(cam, (0.6, -0.5, 0.2)), _slam(cam)))
+    jobs = [_registration_inputs(city, np.array([x, -10.0, 0.0]), seed) for x, seed in ((-40.0, 5), (-10.0, 6), (20.0, 2))]
     try:
         for i, (p, prior, c) in enumerate(jobs):
             assert worker.submit(p, prior, c, float(i))
