@@ -14,8 +14,9 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin, _Crop, _gauss_newton_step,
-                             _Icp, _jacobian, _measurement_cov, _nearest, _nearest_among, _normal_equations, _update, enu_sim3)
+from gis.align.fine import (CHI2_999, LEVEL_NORMAL_Z, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SURFACE_RADIUS_M, SURFACE_STEP_M,
+                             SYS_OFFSET_FRACTION, WALL_RADIUS_M, FineTuner, _Basin, _Crop, _gauss_newton_step, _Icp, _jacobian,
+                             _measurement_cov, _nearest, _nearest_among, _normal_equations, _update, enu_sim3, nadir_scale_ratio)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -732,6 +733,47 @@ def test_scale_check_is_not_fooled_by_facade_points_off_their_wall(city, shrink)
     assert chk.mismatch is (shrink != 1.0), chk.describe()
     if shrink == 1.0:
         assert chk.ratio == pytest.approx(1.0, abs=0.03), chk.describe()
+
+
+def _nadir_reference(src: np.ndarray, crop: _Crop, c: np.ndarray, up_m: float, radius_m: float) -> tuple[int, float, float, float]:
+    """nadir_scale_ratio's rule written point by point with brute-force distances: the tested
+    points' count, median, and the quartiles' 3σ order statistics."""
+    near = src[(np.hypot(src[:, 0], src[:, 1]) < radius_m) & (src[:, 2] < -1.0)]
+    by_x = np.argsort(crop.points[:, 0], kind="stable")
+    xs = crop.points[by_x, 0]
+    k = []
+    for p in near:
+        q = p[:2] + c[:2]
+        slab = by_x[np.searchsorted(xs, q[0] - WALL_RADIUS_M - 1.0):np.searchsorted(xs, q[0] + WALL_RADIUS_M + 1.0)]
+        d = np.hypot(*(crop.points[slab, :2] - q).T)
+        around = slab[d <= WALL_RADIUS_M]
+        if not len(around) or np.any(np.abs(crop.normals[around, 2]) <= LEVEL_NORMAL_Z):
+            continue  # no model there, or a wall near
+        z = crop.points[around[d[d <= WALL_RADIUS_M] <= SURFACE_RADIUS_M], 2]
+        if len(z) and z.max() - z.min() <= SURFACE_STEP_M:  # one level surface, not an edge
+            k.append((up_m - (z[np.argmin(np.abs(z - (p[2] + c[2])))] - c[2])) / -p[2])
+    k, n = np.sort(k), len(k)
+    half = 3.0 * np.sqrt(n * 0.25 * 0.75)
+    return n, float(np.median(k)), float(k[max(int(np.floor(0.25 * n - half)), 0)]), float(k[min(int(np.ceil(0.75 * n + half)), n - 1)])
+
+
+@pytest.mark.parametrize("radius_m", [30.0, 150.0])  # a registration's check (its own tree), check_scale's (the crop's tree)
+def test_nadir_scale_ratio_is_its_rule_point_by_point(city, radius_m):
+    """The vectorised neighbourhoods give what the rule says point by point — walls, roof edges,
+    the level surface nearest in height — over roofs, ground, facades and points off the model."""
+    c = np.array([20.0, -10.0, 75.0])
+    inside = np.all(np.abs(city.points_enu[:, :2] - c[:2]) <= 200.0, axis=1)
+    crop = _Crop((-8, -8, 7, 7), 25.0, city.points_enu[inside], city.normals_enu[inside], None)
+    rng = np.random.default_rng(5)
+    seen = city.points_enu[rng.choice(np.flatnonzero(inside & (np.hypot(*(city.points_enu[:, :2] - c[:2]).T) < radius_m)), 600, replace=False)]
+    seen = seen + rng.normal(0.0, 0.8, seen.shape)
+    seen[:40, 2] += 8.0  # trees the model lacks
+    src = (c + (seen - c) / 1.04) - c  # a map 4 % shrunk about the camera
+    chk = nadir_scale_ratio(src, crop, c, 0.3, radius_m)
+    n, median, low, high = _nadir_reference(src, crop, c, 0.3, radius_m)
+    assert 100 < n < 550  # walls, edges tested and skipped
+    assert (chk.n_points, chk.ratio, chk.low, chk.high) == (n, median, low, high)
+    assert chk.ratio == pytest.approx(1.04, abs=0.02)
 
 
 class _FlightSlam:
