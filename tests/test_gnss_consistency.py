@@ -4,8 +4,13 @@ is not, and the flag reaches the GNSS monitor as an UNTRUSTED verdict."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from companion.pipeline import GnssConsistency
+from companion.pipeline import GnssConsistency, walk_from_m
+from gis.align.fine import enu_sim3
+from gis.geodesy import LocalFrame
+from gis.sim3 import Sim3, compose
+from gis.types import Alignment, AlignmentSource
 from companion.sim.gnss import _gauss_markov
 from mavlink_bridge.config import SwitchingConfig
 from mavlink_bridge.monitor import GnssMonitor
@@ -160,3 +165,21 @@ def test_a_speed_mismatch_open_at_the_gnss_loss_waits_for_the_next_scale_test_no
     assert not [t for t in err if 39.6 <= t < t_ok]  # withheld while the mismatch was open
     after = [err[t] for t in err if t >= t_ok]
     assert len(after) >= 0.9 * (52.0 - t_ok) * 10 and max(after) < 1.0, (len(after), max(after, default=None))
+
+
+def test_walk_from_compares_the_fresh_gnss_fit_with_the_one_a_window_before_it():
+    """Localizer._walk_floor's measure: two GNSS fits WALK_WINDOW_S (10 s) apart put the same SLAM
+    camera where the receiver said it was each time, so their horizontal distance is what the
+    receiver walked meanwhile (here 4 m east; the 1 m up is not counted). The newest fit at least
+    the window older, of the same SLAM map, is the one compared; without one there is none."""
+    origin = LocalFrame(47.3769, 8.5417, 455.0)
+
+    def fit(t_s: float, east_m: float, up_m: float = 0.0, map_id: int = 0) -> Alignment:
+        T = compose(enu_sim3(origin), Sim3(3.0, np.eye(3), np.array([east_m, 0.0, up_m])))
+        return Alignment(T, AlignmentSource.GNSS, t_s, 0, np.eye(6), 1.3, map_id=map_id)
+
+    new = fit(30.0, 4.0, up_m=1.0)
+    fits = [fit(15.0, 9.0), fit(19.0, 0.0), fit(20.5, 6.0), fit(25.0, 2.0), fit(19.5, 7.0, map_id=1), new]
+    d_m, old = walk_from_m(fits, new, np.array([10.0, 5.0, 2.0]))
+    assert old.t_s == 19.0 and d_m == pytest.approx(4.0, abs=1e-4)  # (the local level frame there)
+    assert walk_from_m([fit(25.0, 2.0), fit(19.5, 7.0, map_id=1), new], new, np.zeros(3)) is None
