@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from companion.pipeline import GnssConsistency, walk_from_m
+from companion.sim.gnss import _gauss_markov
 from gis.align.fine import enu_sim3
 from gis.geodesy import LocalFrame
 from gis.sim3 import Sim3, compose
 from gis.types import Alignment, AlignmentSource
-from companion.sim.gnss import _gauss_markov
 from mavlink_bridge.config import SwitchingConfig
 from mavlink_bridge.monitor import GnssMonitor
 from mavlink_bridge.types import GnssQuality, GnssSample, GpsFixType
