@@ -25,7 +25,7 @@ from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
 from mavlink_bridge.link import Link, load_signing_key
 from mavlink_bridge.monitor import EKF_STATUS_GPS_GLITCH, ESTIMATOR_GPS_GLITCH, GnssMonitor, sample_from_gps_raw
 from mavlink_bridge.policy import BridgeState, SwitchEvent, SwitchPolicy
-from mavlink_bridge.types import GnssSample, GnssStatus, VehicleAttitude
+from mavlink_bridge.types import GnssQuality, GnssSample, GnssStatus, VehicleAttitude
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -39,6 +39,21 @@ UNIX_TIME_MIN_US = 10**15       # time_usec at or above this is UNIX time (2001 
 GNSS_STAMP_MAX_AGE_S = 1.0      # a GNSS stamp older than this on arrival is not believed (arrival time used)
 BOOT_OFFSET_SLACK_S = 0.05      # ... nor one this far in the future (the boot offset carries the link's latency)
 BARO_MAX_AGE_S = 0.5     # a barometer sample (ALTITUDE / SCALED_PRESSURE) older than this is not attached to the attitude
+STATUSTEXT_LEN = 50      # MAVLink STATUSTEXT.text
+EKF_POS_HORIZ_ABS = 16   # EKF_STATUS_REPORT (ArduPilot) and ESTIMATOR_STATUS (PX4): the same bit
+#: Before we ever offer an EKF origin the autopilot has this long after link-up to tell us its own
+#: (answers to REQUEST_MESSAGE, re-sent every origin_resend_s): PX4 moves an existing NED origin to
+#: whatever SET_GPS_GLOBAL_ORIGIN says, so one sent before its answer shifts the vehicle's frame.
+ORIGIN_ANSWER_WAIT_S = 4.0
+
+
+def statustext(text: str, limit: int = STATUSTEXT_LEN) -> bytes:
+    """``text`` as one STATUSTEXT: cut at the last word boundary that fits, never mid-word."""
+    raw = text.encode("ascii", "replace")
+    if len(raw) <= limit:
+        return raw
+    cut = raw[:limit + 1].rfind(b" ")
+    return raw[:cut if cut > limit // 2 else limit].rstrip(b" ,:;")
 
 
 @dataclass
@@ -54,6 +69,11 @@ class BridgeStats:
     acks: Counter = field(default_factory=Counter)          # (command, result) → count
     last_seq: int | None = None                             # MAVLink sequence number of the autopilot's last message
     lost: int = 0                                           # the autopilot's messages missing from its sequence (link loss)
+    origin_sent: int = 0                                    # SET_GPS_GLOBAL_ORIGIN messages we sent
+    #: the autopilot's source switch: "not configured" | "pending" | "confirmed" | "unconfirmed" (its
+    #: last takeover or hand-back); "TerraSLAM ACTIVE" is announced only once it is "confirmed"
+    source_switch: str = "not configured"
+    other_systems: Counter = field(default_factory=Counter)  # HEARTBEATs of autopilots that are not our target_system
 
 
 def _q_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -99,7 +119,10 @@ class Bridge:
         self._next_origin_s = 0.0
         self._last_boot_ms: int | None = None
         self._period_s = 1.0 / mav_cfg.rate_hz
+        self._origin_wait_until_s = math.inf   # link-up + ORIGIN_ANSWER_WAIT_S: no origin of ours offered before
         self._pending: dict[str, list] = {}    # key → [message, expected wire value | None, next send s, tries]
+        self._announce: str | None = None      # the ACTIVE announcement waiting for the source switch's confirmation
+        self._ekf_pos_abs = False              # the EKF reports an absolute horizontal position (so it has an origin)
         # ArduPilot reports GPS instance 0 in GPS_RAW_INT and 1 in GPS2_RAW: watch the one that is not ours.
         self._gnss_msg = "GPS2_RAW" if (mav_cfg.autopilot == "ardupilot" and mav_cfg.output == "gps_input" and mav_cfg.gps_id == 0) else "GPS_RAW_INT"
         if mav_cfg.autopilot == "px4" and mav_cfg.output in emitters.LOCAL_OUTPUTS and mav_cfg.rate_hz < 20:
@@ -134,10 +157,13 @@ class Bridge:
         return self
 
     def close(self) -> None:
+        """Stop the receive thread and close the link. A GPS_INPUT feed ends with one NO_FIX, so
+        ArduPilot drops our instance now instead of keeping a silent primary GPS for 4 s."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         if self._link is not None:
+            self._stop_output("bridge closing")
             self._link.close()
 
     # ---- public state ----------------------------------------------------------------------
@@ -255,6 +281,8 @@ class Bridge:
         from_autopilot = self._from_autopilot(msg)
         if from_autopilot:
             self._count(msg)
+        elif t == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.get_srcComponent() == 1:
+            self._other_autopilot(msg.get_srcSystem())
         if t == "TIMESYNC" and msg.tc1 == 0:  # answer the autopilot's timesync request with our clock
             self._send(self._link.mav.timesync_encode(int(now * 1e9), msg.ts1))
             return
@@ -273,9 +301,11 @@ class Bridge:
             if self._on_gnss is not None:
                 self._on_gnss(sample)
         elif t == "EKF_STATUS_REPORT":
+            self._ekf_pos_abs = bool(msg.flags & EKF_POS_HORIZ_ABS)
             with self._lock:
                 self.monitor.on_ekf_flags(bool(msg.flags & EKF_STATUS_GPS_GLITCH), now)
         elif t == "ESTIMATOR_STATUS":
+            self._ekf_pos_abs = bool(msg.flags & EKF_POS_HORIZ_ABS)
             with self._lock:
                 self.monitor.on_ekf_flags(bool(msg.flags & ESTIMATOR_GPS_GLITCH), now)
         elif t == "ATTITUDE":
@@ -311,11 +341,24 @@ class Bridge:
                 del self._pending[f"cmd:{msg.command}"]
                 if msg.result != mavlink.MAV_RESULT_ACCEPTED:
                     log.error("autopilot refused command %d (result %d): source switch not applied", msg.command, msg.result)
+                    self._switch_outcome("unconfirmed")
+                else:
+                    self._switch_outcome("confirmed")
         elif t == "PARAM_VALUE":
             name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
             pending = self._pending.get(f"param:{name.rstrip(chr(0))}")
             if pending is not None and struct.pack("<f", msg.param_value) == struct.pack("<f", pending[1]):
                 del self._pending[f"param:{name.rstrip(chr(0))}"]
+                self._switch_outcome("confirmed")
+
+    def _other_autopilot(self, sysid: int) -> None:
+        """An autopilot HEARTBEAT from another system than ``target_system``: said once per system,
+        because a wrong id silently drops every command (PX4 SITL instance N is system N+1)."""
+        s = self._stats
+        if not s.other_systems[sysid]:
+            log.error("autopilot HEARTBEAT from system %d, but mavlink.target_system=%d: set target_system "
+                      "(and source_system) to the vehicle's system id", sysid, self.cfg.target_system)
+        s.other_systems[sysid] += 1
 
     def _on_link_up(self, hb) -> None:
         kind = {mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", mavlink.MAV_AUTOPILOT_PX4: "px4"}.get(hb.autopilot, f"autopilot {hb.autopilot}")
@@ -323,6 +366,7 @@ class Bridge:
         log.info("link up: %s (sys %d)", kind, hb.get_srcSystem())
         if kind != self.cfg.autopilot:
             log.error("connected autopilot is %s but mavlink.autopilot=%s: it may ignore what we send", kind, self.cfg.autopilot)
+        self._origin_wait_until_s = self.clock() + ORIGIN_ANSWER_WAIT_S
         self._request_streams()
 
     def _on_origin(self, lat: float, lon: float, alt_msl: float) -> None:
@@ -382,21 +426,52 @@ class Bridge:
             self._next_origin_s = now + self.cfg.origin_resend_s
             self._command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
             fix = self._last_fix or self.monitor.fix
-            if fix is not None and emitters.trustworthy(fix, self.cfg):
+            if fix is not None and emitters.trustworthy(fix, self.cfg) and self._may_offer_origin(now):
                 # ArduPilot drops it before its EKF starts and accepts it once: re-send until it answers.
                 self._send(self._link.mav.set_gps_global_origin_encode(
                     self.cfg.target_system, round(fix.lat_deg * 1e7), round(fix.lon_deg * 1e7), round(fix.h_msl_m * 1000), 0))
+                self._stats.origin_sent += 1
+
+    def _may_offer_origin(self, now: float) -> bool:
+        """Only an autopilot that has no EKF origin gets ours: never over an existing one (PX4 moves
+        its NED frame to it, shifting the vehicle's local position). It has one, or will set its own,
+        when it answered GPS_GLOBAL_ORIGIN (then we are not asked), when its EKF reports an absolute
+        horizontal position, or while its receiver has a 3D fix; and it gets ORIGIN_ANSWER_WAIT_S
+        after link-up to answer our requests first."""
+        with self._lock:
+            st = self.monitor.status(now)
+        receiver_fix = st.quality is not GnssQuality.LOST and st.sample is not None and st.sample.fix_type >= 3
+        return now >= self._origin_wait_until_s and not self._ekf_pos_abs and not receiver_fix
 
     def _on_switch(self, ev: SwitchEvent) -> None:
+        """Log the switch, ask the autopilot to switch its source, and tell the pilot. "TerraSLAM
+        ACTIVE" is said only once the autopilot confirmed that it now uses us (_switch_outcome);
+        without a source switch the text says that our fixes are only offered."""
         log.warning("switch %s -> %s at %.2f s: %s", ev.from_state.value, ev.to_state.value, ev.t_s, ev.reason)
         active = ev.to_state is BridgeState.ACTIVE
-        text = ("TerraSLAM ACTIVE: " if active else "TerraSLAM STANDBY: ") + ev.reason
-        severity = mavlink.MAV_SEVERITY_WARNING if active else mavlink.MAV_SEVERITY_NOTICE
-        self._send(self._link.mav.statustext_encode(severity, text[:50].encode()))
-        if self.cfg.switch_ekf_source:
-            self._switch_source(active)
+        switching = self.cfg.switch_ekf_source and self._switch_source(active)
+        self._stats.source_switch = "pending" if switching else "not configured"
+        self._announce = None
+        if not active:
+            self._statustext(mavlink.MAV_SEVERITY_NOTICE, f"TerraSLAM STANDBY: {ev.reason}")
+        elif switching:
+            self._announce = f"TerraSLAM ACTIVE: {ev.reason}"
+        else:
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"TerraSLAM fixes offered, no source switch: {ev.reason}")
 
-    def _switch_source(self, active: bool) -> None:
+    def _switch_outcome(self, outcome: str) -> None:
+        self._stats.source_switch = outcome
+        if outcome == "confirmed" and self._announce is not None:
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, self._announce)
+        elif outcome == "unconfirmed" and self._announce is not None:
+            self._statustext(mavlink.MAV_SEVERITY_ERROR, "TerraSLAM: autopilot did not confirm the source switch")
+        self._announce = None
+
+    def _statustext(self, severity: int, text: str) -> None:
+        self._send(self._link.mav.statustext_encode(severity, statustext(text)))
+
+    def _switch_source(self, active: bool) -> bool:
+        """Ask the autopilot to take (``active``) or drop our source; False where this output has no switch."""
         c = self.cfg
         if c.autopilot == "ardupilot" and c.output == "gps_input":
             # Effective with GPS_AUTO_SWITCH=0 (docs/AUTOPILOTS.md): make our instance primary, or the receiver's.
@@ -409,9 +484,11 @@ class Bridge:
             # HIL_GPS is itself a GPS to EKF2: EKF2_GPS_CTRL=0 would drop it too. PX4 picks the better
             # receiver on fix loss; a spoofed receiver is not overridden on this path (docs/AUTOPILOTS.md).
             log.warning("px4 hil_gps: no source switch available; PX4 selects the receiver by itself")
+            return False
         else:
             # PX4 keeps fusing a (spoofed) receiver that looks healthy: stop GNSS fusion while we lead.
             self._param_set(b"EKF2_GPS_CTRL", 0 if active else c.px4_gps_ctrl, mavlink.MAV_PARAM_TYPE_INT32)
+        return True
 
     def _param_set(self, name: bytes, value: int, ptype: int) -> None:
         # ArduPilot takes integers as float values; PX4 encodes them bytewise in the float field.
@@ -432,6 +509,7 @@ class Bridge:
             if p[3] >= CONFIRM_TRIES:
                 log.error("%s not confirmed by the autopilot after %d tries: source switch may not be applied", key, p[3])
                 del self._pending[key]
+                self._switch_outcome("unconfirmed")
                 continue
             p[2], p[3] = now + CONFIRM_RESEND_S, p[3] + 1
             self._send(p[0])

@@ -20,6 +20,7 @@ Personality rules (AUTOPILOT.md):
   only LOCAL_FRD/BODY_FRD) at most one sample per 20 ms, used when the active EK3 source set has
   POSXY=6; SET_GPS_GLOBAL_ORIGIN dropped before the EKF starts and accepted once; streams only what
   is requested with SET_MESSAGE_INTERVAL.
+- px4 (as the real SIH): SET_GPS_GLOBAL_ORIGIN over an existing origin moves it (``origin_moves``).
 """
 from __future__ import annotations
 
@@ -123,6 +124,7 @@ class SimAutopilot:
         self._baro_drift_m = 0.0
         self._baro_last_s: float | None = None
         self.origin: _Pos | None = None
+        self.origin_moves = 0  # px4: SET_GPS_GLOBAL_ORIGIN over an existing origin (the real one moves its frame)
         self._mgps: dict | None = None          # last GPS_INPUT fields (ArduPilot MAVLink GPS)
         self._mgps_times: deque = deque(maxlen=10)
         self._ext: _Pos | None = None           # ExternalNav / EV (converted to global)
@@ -450,8 +452,10 @@ class SimAutopilot:
         t = "SET_GPS_GLOBAL_ORIGIN"
         if not self._ekf_started(now):
             return self._reject(now, t, "EKF not started yet")
-        if self.origin is not None:
+        if self.origin is not None and self.personality == "ardupilot":
             return self._reject(now, t, "origin already set")
+        if self.origin is not None:  # real PX4 SIH: moves its NED origin to the new one (docs/AUTOPILOTS.md)
+            self.origin_moves += 1
         self._set_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude / 1000.0)
         self._accept(t)
 

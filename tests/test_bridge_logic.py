@@ -186,3 +186,12 @@ def test_signing_key_file_checks(tmp_path):
         load_signing_key(key)
     with pytest.raises(SigningKeyError, match="cannot read"):
         load_signing_key(tmp_path / "missing")
+
+
+def test_statustext_is_cut_at_a_word():
+    from mavlink_bridge.bridge import statustext
+    text = "TerraSLAM ACTIVE: GNSS lost: no 3D fix for 0.8 s (fix_type 1, 3 satellites)"
+    out = statustext(text)
+    assert len(out) <= 50 and text.encode().startswith(out) and text[len(out)] == " "
+    assert statustext("short") == b"short"
+    assert len(statustext("x" * 80)) == 50  # one unbroken word: cut where it must

@@ -238,7 +238,7 @@ def test_ardupilot_external_nav_origin_and_source_set(rigs):
     # no GNSS at boot: the bridge must set the EKF origin (re-sent until acknowledged), then ExtNav
     rig = rigs("ardupilot", output="odometry", params={"GPS_AUTO_SWITCH": 1})
     rig.sim.ekf_start_s = 1.0
-    assert rig.fly(5.0, gnss="lost", until=lambda: rig.sim.estimate().source == "external_nav")
+    assert rig.fly(9.0, gnss="lost", until=lambda: rig.sim.estimate().source == "external_nav")
     rx = rig.sim.received()
     assert rx.accepted["SET_GPS_GLOBAL_ORIGIN"] == 1 and rig.sim.source_set == 2
     assert rig.bridge.stats().origin is not None
@@ -381,4 +381,63 @@ def test_a_simulated_clock_autopilot_answers_a_new_peer_with_a_heartbeat(on_new_
         assert (sim.last_sent_seq() is not None) is on_new_peer  # nothing was written to a peer without it
     finally:
         bridge.close()
+        sim.close()
+
+
+def test_px4_origin_never_offered_over_its_own(rigs):
+    # PX4 (like the real SIH) moves its NED origin to any SET_GPS_GLOBAL_ORIGIN: with GNSS at boot
+    # it sets its own, and the bridge, which asks for it, must never offer ours over it
+    rig = rigs("px4")
+    assert rig.fly(8.0, until=lambda: rig.bridge.ekf_origin() is not None and rig.k > 120)
+    rig.fly(3.0, gnss="lost")  # and not after GNSS goes either: the EKF has its origin
+    assert rig.bridge.stats().origin_sent == 0
+    assert rig.sim.received().counts["SET_GPS_GLOBAL_ORIGIN"] == 0 and rig.sim.origin_moves == 0
+
+
+def test_ardupilot_close_while_active_sends_no_fix(rigs):
+    rig = rigs("ardupilot")
+    rig.fly(1.5)
+    assert rig.fly(3.0, gnss="lost", until=lambda: rig.sim.estimate().source == "mavlink_gps")
+    rig.bridge.close()
+    time.sleep(0.3)
+    assert rig.sim._mgps["fix"] == 0  # our instance now reports no fix instead of a silent primary GPS
+
+
+@pytest.mark.parametrize("switch", [True, False])
+def test_active_claimed_only_once_the_autopilot_confirms_its_switch(rigs, switch):
+    rig = rigs("ardupilot", switch_ekf_source=switch)
+    rig.fly(1.5)
+    assert rig.fly(3.0, gnss="lost", until=lambda: rig.bridge.state is BridgeState.ACTIVE)
+    rig.fly(1.0, gnss="lost")
+    texts = [t for _, t in rig.sim.received().statustext]
+    assert rig.bridge.stats().source_switch == ("confirmed" if switch else "not configured")
+    assert any(t.startswith("TerraSLAM ACTIVE") for t in texts) is switch, texts
+    if not switch:
+        assert any(t.startswith("TerraSLAM fixes offered, no source switch") for t in texts), texts
+
+
+def test_unconfirmed_switch_is_not_claimed(rigs):
+    rig = rigs("ardupilot", params={"GPS_AUTO_SWITCH": 1})
+    del rig.sim.params["GPS_PRIMARY"]  # never confirmed
+    rig.fly(1.5)
+    rig.fly(6.5, gnss="lost")
+    texts = [t for _, t in rig.sim.received().statustext]
+    assert rig.bridge.stats().source_switch == "unconfirmed"
+    assert not any(t.startswith("TerraSLAM ACTIVE") for t in texts)
+    assert "TerraSLAM: autopilot did not confirm the source switch" in texts
+
+
+def test_wrong_target_system_is_reported(rigs):
+    rig = rigs("px4", target_system=1)
+    rig.sim.close()
+    sim = SimAutopilot("px4", sysid=2, ekf_start_s=0.2).start()  # PX4 SITL instance 1 is system 2
+    try:
+        rig.bridge.close()
+        rig.bridge = Bridge(rig.cfg.model_copy(update={"connect": f"udpout:127.0.0.1:{sim.port}"}), SwitchingConfig()).start()
+        deadline = time.monotonic() + 3.0
+        while not rig.bridge.stats().other_systems and time.monotonic() < deadline:
+            rig.bridge.submit_fix(None)
+            time.sleep(0.05)
+        assert 2 in rig.bridge.stats().other_systems and not rig.bridge.stats().link_up
+    finally:
         sim.close()
