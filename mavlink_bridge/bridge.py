@@ -464,7 +464,7 @@ class Bridge:
         if outcome == "confirmed" and self._announce is not None:
             self._statustext(mavlink.MAV_SEVERITY_WARNING, self._announce)
         elif outcome == "unconfirmed" and self._announce is not None:
-            self._statustext(mavlink.MAV_SEVERITY_ERROR, "TerraSLAM: autopilot did not confirm the source switch")
+            self._statustext(mavlink.MAV_SEVERITY_ERROR, "TerraSLAM: source switch not confirmed")
         self._announce = None
 
     def _statustext(self, severity: int, text: str) -> None:
