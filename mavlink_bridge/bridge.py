@@ -176,6 +176,10 @@ class Bridge:
         with self._lock:
             return self._origin
 
+    def ekf_absolute_position(self) -> bool:
+        """The autopilot's EKF reports an absolute horizontal position (EKF_STATUS_REPORT / ESTIMATOR_STATUS)."""
+        return self._ekf_pos_abs
+
     def gnss_status(self) -> GnssStatus:
         with self._lock:
             return self.monitor.status(self.clock())

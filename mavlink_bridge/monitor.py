@@ -12,6 +12,7 @@ Pieces, each with one job:
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -23,6 +24,8 @@ from gis.types import GlobalFix
 from mavlink_bridge.config import SwitchingConfig
 from mavlink_bridge.types import GnssQuality, GnssSample, GnssStatus, GpsFixType
 
+log = logging.getLogger(__name__)
+
 #: ArduPilot EKF_STATUS_REPORT flag bit 15 (GPS_GLITCHING), see AUTOPILOT.md.
 EKF_STATUS_GPS_GLITCH = 32768
 #: PX4 ESTIMATOR_STATUS flag ESTIMATOR_GPS_GLITCH (MAVLink common ESTIMATOR_STATUS_FLAGS).
@@ -31,8 +34,19 @@ ESTIMATOR_GPS_GLITCH = 1024
 GLITCH_HOLD_S = 2.0
 
 
+#: alt_ellipsoid further than this from alt (MSL) + EGM96 means the autopilot's receiver uses
+#: another geoid (ArduPilot SITL reports alt_ellipsoid = alt: no geoid at all; 47.8 m off at Zurich)
+GEOID_DISAGREE_M = 5.0
+_geoid_warned = False
+
+
 def sample_from_gps_raw(msg, t_s: float) -> GnssSample:
     """Decode GPS_RAW_INT or GPS2_RAW (both carry the same fields) into a GnssSample.
+
+    The ellipsoidal height is alt (MSL) + the EGM96 geoid, the model our fixes go back through as
+    MSL (GPS_INPUT, GLOBAL_POSITION_SENSOR, the EKF origin), so a height round-trips to the
+    autopilot unchanged whatever geoid its receiver uses; alt_ellipsoid is only compared with it,
+    and a disagreement beyond GEOID_DISAGREE_M is logged once.
 
     MAVLink sentinels: eph/epv UINT16_MAX = unknown (PX4 also reports 10000 on loss),
     alt_ellipsoid 0 = not sent, h_acc/v_acc 0 = not sent (mm), vel UINT16_MAX, cog UINT16_MAX.
@@ -49,13 +63,16 @@ def sample_from_gps_raw(msg, t_s: float) -> GnssSample:
         v = msg.vel / 100.0
         cog = math.radians(msg.cog / 100.0)
         vel = (v * math.cos(cog), v * math.sin(cog), math.nan)
+    lat, lon, alt_msl = msg.lat * 1e-7, msg.lon * 1e-7, msg.alt / 1000.0
+    h_ell = float(msl_to_ellipsoid(lat, lon, alt_msl)) if fix >= GpsFixType.FIX_3D else math.nan
+    _check_geoid(h_ell, alt_ell_mm / 1000.0 if alt_ell_mm else math.nan)
     return GnssSample(
         t_s=t_s,
         fix_type=fix,
-        lat_deg=msg.lat * 1e-7,
-        lon_deg=msg.lon * 1e-7,
-        alt_msl_m=msg.alt / 1000.0,
-        h_ellipsoid_m=alt_ell_mm / 1000.0 if alt_ell_mm else math.nan,
+        lat_deg=lat,
+        lon_deg=lon,
+        alt_msl_m=alt_msl,
+        h_ellipsoid_m=h_ell,
         eph=eph,
         epv=epv,
         h_acc_m=h_acc_mm / 1000.0 if h_acc_mm else math.nan,
@@ -156,6 +173,15 @@ class JammingDetector:
     def jammed(self, now_s: float) -> bool:
         recent = [t for t in self._flips if now_s - t <= self.cfg.jamming_window_s]
         return len(recent) >= self.cfg.jamming_flips
+
+
+def _check_geoid(h_ell_egm96_m: float, h_ell_reported_m: float) -> None:
+    global _geoid_warned
+    if not _geoid_warned and abs(h_ell_egm96_m - h_ell_reported_m) > GEOID_DISAGREE_M:
+        _geoid_warned = True
+        log.warning("the autopilot's GNSS reports an ellipsoidal height %.1f m from its MSL altitude + EGM96 "
+                    "(its receiver uses another geoid, or none as in ArduPilot SITL): heights are taken from "
+                    "its MSL altitude, which our fixes return to", h_ell_reported_m - h_ell_egm96_m)
 
 
 @dataclass
