@@ -145,7 +145,7 @@ def test_las_laz_with_crs_and_classification(tmp_path, ext, monkeypatch):
     p = np.column_stack([stored.x, stored.y, stored.z])  # voxels of the file's mm-quantised coordinates
     idx = _assert_thinned(_model_ecef(m), _utm_to_ecef(p), p, 1.0)
     np.testing.assert_array_equal(m.labels, np.asarray(las.classification)[idx])
-    monkeypatch.setattr(loaders, "LAS_CHUNK_POINTS", 300)  # read in 7 chunks: voxels straddling chunks kept once
+    monkeypatch.setattr(loaders.las, "LAS_CHUNK_POINTS", 300)  # read in 7 chunks: voxels straddling chunks kept once
     chunked = load_model(path)
     _assert_thinned(_model_ecef(chunked), _utm_to_ecef(p), p, 1.0)
     dense = load_model(path, sample_spacing_m=0.1)  # a spacing finer than the cloud keeps every point
