@@ -44,6 +44,10 @@ WALL_RADIUS_M = 3.0            # ... and no wall of the model this close: a poin
 SURFACE_STEP_M = 1.0           # level model surfaces under a point further apart in height: an edge, no test
 LEVEL_NORMAL_Z = 0.8           # a model point on a level surface (ground, roof): |normal up-component| above this
 MAX_SCALE_MISMATCH = 0.06      # |k − 1| tolerated beyond the quartiles' 3σ bounds (demo seeds 0/4/5: good registrations' medians 0.946–1.022, the scale break 1.080–1.084)
+#: SLAM scale errors measured lie within a few tens of percent (breaks in turns: 6–20 %); a median ratio
+#: outside these bounds (or not positive: the model's surface above the camera) is no scale error SLAM
+#: makes: the GIS model's heights are off (a wrong vertical datum or unit, an ignored offset)
+PLAUSIBLE_SCALE_RATIO = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -64,9 +68,22 @@ class ScaleCheck:
         upper quarter too far (it grew)."""
         return math.isfinite(self.ratio) and (self.low > 1.0 + self.tolerance or self.high < 1.0 - self.tolerance)
 
+    @property
+    def model_heights_suspect(self) -> bool:
+        """The ratio is far beyond any SLAM scale error (PLAUSIBLE_SCALE_RATIO): the model's heights are
+        more likely wrong than the map's scale."""
+        lo, hi = PLAUSIBLE_SCALE_RATIO
+        return math.isfinite(self.ratio) and not lo <= self.ratio <= hi
+
     def describe(self) -> str:
-        return (f"ratio {self.ratio:.3f} over {self.n_points} points, quartiles beyond {self.low:.3f} … "
+        text = (f"ratio {self.ratio:.3f} over {self.n_points} points, quartiles beyond {self.low:.3f} … "
                 f"{self.high:.3f} (3σ; tolerance 1 ± {self.tolerance:g})")
+        if self.model_heights_suspect:
+            lo, hi = PLAUSIBLE_SCALE_RATIO
+            text += (f"; a ratio outside {lo:g} … {hi:g} is no SLAM scale error: the GIS model's heights or vertical "
+                     "datum are suspect (check the model file's vertical CRS and unit, or its .georef.json 'vertical', "
+                     "'vertical_unit' and 'offset_m')")
+        return text
 
 
 def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: float,

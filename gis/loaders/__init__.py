@@ -50,6 +50,7 @@ from gis.loaders.common import sample_mesh as sample_mesh
 from gis.loaders.footprints import DEFAULT_BUILDING_HEIGHT_M as DEFAULT_BUILDING_HEIGHT_M
 from gis.loaders.footprints import LEVEL_HEIGHT_M as LEVEL_HEIGHT_M
 from gis.loaders.footprints import Ground, load_geojson, load_osm
+from gis.loaders.heights import no_sidecar
 from gis.loaders.las import load_las
 from gis.loaders.mesh import load_mesh, load_ply
 from gis.loaders.raster import dem_heights_ellipsoid_m as dem_heights_ellipsoid_m
@@ -100,10 +101,12 @@ def _load_model(path: Path, sample_spacing_m: float, ground: Ground) -> GisModel
         raise GisFormatError(path, "no such file")
     name = path.name.lower()
     if name.endswith((".pbf", ".osm", ".osm.bz2", ".osm.gz")):
+        no_sidecar(path, "OSM")
         return load_osm(path, sample_spacing_m, ground)
     if name.endswith(".jsonl"):
         return load_cityjson_seq(path, sample_spacing_m)
     if name.endswith(".npz"):  # a GisModel as the GIS cache stores it (a site's model file)
+        no_sidecar(path, "GisModel .npz")
         return model_from_npz(path)
     with open(path, "rb") as f:
         head = f.read(16)
@@ -125,8 +128,10 @@ def _load_model(path: Path, sample_spacing_m: float, ground: Ground) -> GisModel
         if kind == "CityJSON":
             return load_cityjson(path, sample_spacing_m, doc)
         if kind in ("FeatureCollection", "Feature"):
+            no_sidecar(path, "GeoJSON")
             return load_geojson(path, sample_spacing_m, ground, doc)
         if isinstance(doc, dict) and "asset" in doc and "root" in doc:
+            no_sidecar(path, "3D Tiles")
             return load_3dtiles(path, sample_spacing_m)
         raise GisFormatError(path, f"JSON is neither CityJSON, GeoJSON nor a 3D Tiles tileset (type={kind!r})")
     if name.endswith((".las", ".laz")):

@@ -11,6 +11,7 @@ from pyproj.exceptions import CRSError
 
 from gis.loaders.common import _read_json, sample_polygon
 from gis.loaders.georef import _georeferenced
+from gis.loaders.heights import georef_of, read_sidecar
 from gis.model import BUILDING, GROUND, HIGH_VEGETATION, ROAD, UNCLASSIFIED, GisFormatError, GisModel
 
 
@@ -58,7 +59,9 @@ def load_cityjson(path: Path, sample_spacing_m: float = 1.0, doc: dict | None = 
     if not pts:
         raise GisFormatError(path, "CityJSON holds no surfaces")
     p, n = np.concatenate(pts), np.concatenate(nrms)
-    return _georeferenced(path, p, n, np.concatenate(labs), crs, np.zeros(3), "ellipsoid", sample_spacing_m)
+    # (after the geometry: a malformed file is refused as such before its heights' datum is asked for)
+    georef = georef_of(path, "CityJSON", crs, read_sidecar(path, "CityJSON"))
+    return _georeferenced(path, p, n, np.concatenate(labs), georef, sample_spacing_m)
 
 
 _CITYJSON_SURFACE_TYPES = ("MultiSurface", "CompositeSurface", "Solid", "MultiSolid", "CompositeSolid")

@@ -4,9 +4,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from pyproj import CRS
+from pyproj.exceptions import CRSError
 
 from gis.loaders.common import _median_spacing, first_per_voxel
 from gis.loaders.georef import _georeferenced
+from gis.loaders.heights import georef_of, read_sidecar
 from gis.model import GisFormatError, GisModel
 
 
@@ -30,6 +33,7 @@ def load_las(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
             crs = f.header.parse_crs()
             if crs is None:
                 raise GisFormatError(path, "LAS/LAZ has no CRS VLR (WKT or GeoTIFF keys); cannot georeference")
+            georef = georef_of(path, "LAS/LAZ", crs, read_sidecar(path, "LAS/LAZ"), *_vertical_geokeys(path, f.header))
             for chunk in f.chunk_iterator(LAS_CHUNK_POINTS):
                 cls = np.asarray(chunk.classification).astype(np.uint8)
                 good = ~np.isin(cls, LAS_NOISE_CLASSES) & ~np.asarray(chunk.withheld, bool)
@@ -46,4 +50,34 @@ def load_las(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
         raise GisFormatError(path, "LAS/LAZ holds no points (after dropping noise and withheld ones)")
     keep = first_per_voxel(p, sample_spacing_m)  # voxels that straddle two chunks
     p, labels = p[keep], np.concatenate(labs)[keep]
-    return _georeferenced(path, p, None, labels, crs, np.zeros(3), "ellipsoid", max(_median_spacing(p), sample_spacing_m))
+    return _georeferenced(path, p, None, labels, georef, max(_median_spacing(p), sample_spacing_m))
+
+
+#: GeoTIFF keys (OGC 19-008r4) a LAS file's GeoKeyDirectory VLR may state its heights by, which laspy's
+#: parse_crs does not read: VerticalCRSGeoKey (an EPSG vertical CRS) and VerticalUnitsGeoKey (EPSG
+#: unit codes: 9001 metre, 9002 foot, 9003 US survey foot)
+VERTICAL_CRS_GEOKEY, VERTICAL_UNITS_GEOKEY = 4096, 4099
+_GEOKEY_UNITS_M = {9001: 1.0, 9002: 0.3048, 9003: 1200.0 / 3937.0}
+
+
+def _vertical_geokeys(path: Path, header) -> tuple[CRS | None, float | None]:
+    """(the vertical CRS, metres per height unit) a GeoKeyDirectory VLR states (None for what it
+    does not); a WKT VLR, which laspy prefers, states its heights in its own CRS."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, WktCoordinateSystemVlr
+
+    vlrs = list(header.vlrs) + list(header.evlrs or [])
+    if any(isinstance(v, WktCoordinateSystemVlr) for v in vlrs):
+        return None, None
+    keys = {k.id: k.value_offset for v in vlrs if isinstance(v, GeoKeyDirectoryVlr) for k in v.geo_keys}
+    vertical, unit = keys.get(VERTICAL_CRS_GEOKEY), keys.get(VERTICAL_UNITS_GEOKEY)
+    if unit is not None and unit not in _GEOKEY_UNITS_M:
+        raise GisFormatError(path, f"VerticalUnitsGeoKey {unit} is not metre (9001), foot (9002) or US survey foot (9003)")
+    if vertical is None or vertical == 32767:  # (user-defined: only its unit is stated)
+        return None, None if unit is None else _GEOKEY_UNITS_M[unit]
+    try:
+        v = CRS.from_epsg(vertical)
+    except CRSError as e:
+        raise GisFormatError(path, f"VerticalCRSGeoKey {vertical} is no EPSG vertical CRS: {e}") from None
+    if not v.is_vertical:
+        raise GisFormatError(path, f"VerticalCRSGeoKey {vertical} names a {v.type_name}, not a vertical CRS")
+    return v, None

@@ -23,7 +23,7 @@ def load_ply(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
 
 def load_mesh(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     """PLY/OBJ/GLB/glTF mesh or PLY point cloud + georef sidecar."""
-    crs, offset, vertical = read_georef(path)
+    georef = read_georef(path)
     if path.suffix.lower() in (".glb", ".gltf"):
         data = path.read_bytes()
         check_gltf_extensions(path, _glb_json(path, data) if data[:4] == b"glTF" else _read_json(path))
@@ -44,14 +44,14 @@ def load_mesh(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
         if raw is not None and all(k in raw.dtype.names for k in ("nx", "ny", "nz")):
             n = np.stack([raw["nx"], raw["ny"], raw["nz"]], axis=1).astype(float)
         keep = first_per_voxel(p, sample_spacing_m) if len(p) else slice(None)
-        return _georeferenced(path, p[keep], None if n is None else n[keep], labels[keep], crs, offset, vertical, sample_spacing_m)
+        return _georeferenced(path, p[keep], None if n is None else n[keep], labels[keep], georef, sample_spacing_m)
     if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
         raise GisFormatError(path, f"no triangles or points found ({type(geom).__name__})")
     p, n, face_idx = sample_mesh(geom, sample_spacing_m)
     labels = _mesh_labels(geom, face_idx)
     if is_gltf:
         p, n = p @ R_ZUP_YUP.T, n @ R_ZUP_YUP.T
-    return _georeferenced(path, p, n, labels, crs, offset, vertical, sample_spacing_m)
+    return _georeferenced(path, p, n, labels, georef, sample_spacing_m)
 
 
 def _labels_from(raw: np.ndarray | None, n: int) -> np.ndarray:

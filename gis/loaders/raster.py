@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
 
 from gis.geodesy import ecef_to_geodetic
-from gis.loaders.common import _read_json
 from gis.loaders.georef import crs_to_ecef
+from gis.loaders.heights import Georef, georef_of, read_sidecar
 from gis.model import UNCLASSIFIED, GisFormatError, GisModel, model_from_ecef
 
 
@@ -26,12 +25,14 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     a roof and the ground is invented), triangulated cell by cell in ECEF and sampled as a mesh is,
     so that the jump at a building's edge becomes a wall. Nodata pixels leave holes. Read in blocks.
     CRS from the file's GeoKeys (else the ``.georef.json`` sidecar's ``crs``); the heights' datum
-    from a compound CRS, else the sidecar's ``vertical`` ("egm96" for most DEMs, or "ellipsoid"):
+    from a compound CRS, else the sidecar's ``vertical`` ("egm96" for most DEMs, "ellipsoid", or a
+    vertical CRS) and ``vertical_unit``; the sidecar's ``offset_m`` is added (gis.loaders.heights):
     a DEM without it is refused, as its heights are usually above the geoid, not the ellipsoid."""
     import rasterio
     from rasterio.windows import Window
 
-    with _raster(path) as (ds, crs, vertical):
+    with _raster(path) as (ds, g):
+        crs = g.crs
         k = max(1, int(round(sample_spacing_m / _pixel_size_m(ds, crs))))
         scale, offset = ds.scales[0], ds.offsets[0]  # stored value → height (GDAL band scale/offset: packed int16 DEMs)
         rows, cols = np.arange(k // 2, ds.height, k), np.arange(k // 2, ds.width, k)  # picked pixels
@@ -44,7 +45,7 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
                     z = ds.read(1, window=win, masked=True)[(r - r[0])[:, None], (c - c[0])[None, :]] * scale + offset
                 except rasterio.errors.RasterioIOError as e:
                     raise GisFormatError(path, f"cannot read GeoTIFF block at row {r[0]}, column {c[0]}: {e}") from None
-                mesh = _heightfield_ecef(path, ds.transform, r, c, z, crs, vertical)
+                mesh = _heightfield_ecef(path, ds.transform, r, c, z, g)
                 if mesh is None:
                     continue
                 # one sample per spacing² (sample_mesh's floor of one per face would double it: two triangles a cell)
@@ -62,7 +63,7 @@ def load_geotiff(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
 
 @contextlib.contextmanager
 def _raster(path: Path):
-    """(the open rasterio dataset, its CRS, the heights' datum: ``_raster_georef``)."""
+    """(the open rasterio dataset, its Georef: ``_raster_georef``)."""
     import rasterio
 
     try:
@@ -70,7 +71,7 @@ def _raster(path: Path):
     except rasterio.errors.RasterioIOError as e:
         raise GisFormatError(path, f"cannot read GeoTIFF: {e}") from None
     with ds:
-        yield ds, *_raster_georef(path, ds)
+        yield ds, _raster_georef(path, ds)
 
 
 def _pixel_size_m(ds, crs: CRS) -> float:
@@ -83,26 +84,14 @@ def _pixel_size_m(ds, crs: CRS) -> float:
     return float(min(rx, ry) * crs.axis_info[0].unit_conversion_factor)
 
 
-def _raster_georef(path: Path, ds) -> tuple[CRS, str]:
-    side = path.with_name(path.name + ".georef.json")
-    doc = _read_json(side) if side.is_file() else {}
-    try:
-        crs = CRS.from_user_input(doc["crs"]) if "crs" in doc else CRS.from_wkt(ds.crs.to_wkt()) if ds.crs else None
-    except CRSError as e:
-        raise GisFormatError(side if "crs" in doc else path, f"bad CRS: {e}") from None
-    if crs is None:
-        raise GisFormatError(path, f"GeoTIFF has no CRS (GeoKeys); give it in {side.name}: {{\"crs\": ..., \"vertical\": ...}}")
-    if len(crs.axis_info) >= 3:
-        return crs, "ellipsoid"  # the CRS carries its vertical datum (crs_to_ecef lets PROJ apply it)
-    vertical = doc.get("vertical")
-    if vertical not in ("egm96", "ellipsoid"):
-        raise GisFormatError(path, f"the heights' datum is unknown ({crs.name} is 2D): say it in {side.name}, "
-                                   "{\"vertical\": \"egm96\"} (most DEMs: above the geoid) or \"ellipsoid\"")
-    return crs, vertical
+def _raster_georef(path: Path, ds) -> Georef:
+    """The GeoTIFF's CRS (its GeoKeys, or the sidecar's ``crs``) and its heights' datum and unit."""
+    file_crs = CRS.from_wkt(ds.crs.to_wkt()) if ds.crs else None
+    return georef_of(path, "GeoTIFF", file_crs, read_sidecar(path, "GeoTIFF"))
 
 
-def _heightfield_ecef(path: Path, T_px, rows: np.ndarray, cols: np.ndarray, z: np.ma.MaskedArray, crs: CRS,
-                      vertical: str) -> trimesh.Trimesh | None:
+def _heightfield_ecef(path: Path, T_px, rows: np.ndarray, cols: np.ndarray, z: np.ma.MaskedArray,
+                      g: Georef) -> trimesh.Trimesh | None:
     """The grid of picked pixel centres (rows × cols of the raster, heights z) as a triangle mesh in
     ECEF: two triangles per cell whose four corners hold heights."""
     valid = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
@@ -110,11 +99,12 @@ def _heightfield_ecef(path: Path, T_px, rows: np.ndarray, cols: np.ndarray, z: n
     if not cell.any():
         return None
     cc, rr = np.meshgrid(cols + 0.5, rows + 0.5)
-    x, y = T_px @ (cc.ravel(), rr.ravel())  # affine: pixel centre → CRS
+    x, y = T_px @ (cc.ravel(), rr.ravel())  # affine: pixel centre → file coordinates
     try:
-        v = crs_to_ecef(np.column_stack([x, y, np.ma.getdata(z).ravel().astype(float)]), crs, vertical)
+        v = crs_to_ecef(np.column_stack([x, y, np.ma.getdata(z).ravel().astype(float)]) + g.offset, g.crs, g.vertical,
+                        g.height_unit_m)
     except ValueError as e:
-        raise GisFormatError(path, f"cannot transform from {crs.name}: {e}") from None
+        raise GisFormatError(path, f"cannot transform from {g.crs.name}: {e}") from None
     w = len(cols)
     i, j = np.nonzero(cell)
     a, b, c, d = i * w + j, i * w + j + 1, (i + 1) * w + j, (i + 1) * w + j + 1
@@ -125,17 +115,19 @@ def _heightfield_ecef(path: Path, T_px, rows: np.ndarray, cols: np.ndarray, z: n
 def dem_heights_ellipsoid_m(dem: Path, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
     """Ellipsoidal heights (m) of a GeoTIFF terrain model at WGS-84 positions (its pixel there, no
     interpolation); NaN outside it or over nodata. CRS and the heights' datum as ``load_geotiff``."""
-    with _raster(dem) as (ds, crs, vertical):
+    with _raster(dem) as (ds, g):
+        crs = g.crs
         horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
         x, y = Transformer.from_crs("EPSG:4326", horizontal, always_xy=True).transform(lon_deg, lat_deg)
-        samples = list(ds.sample(zip(x, y), masked=True))
+        samples = list(ds.sample(zip(np.asarray(x) - g.offset[0], np.asarray(y) - g.offset[1]), masked=True))
         nodata = np.array([bool(np.ma.getmaskarray(v)[0]) for v in samples], bool)
         z = np.array([float(np.ma.getdata(v)[0]) for v in samples]) * ds.scales[0] + ds.offsets[0]
     ok = ~nodata & np.isfinite(z)
     h = np.full(len(x), np.nan)
     if ok.any():
         try:
-            ecef = crs_to_ecef(np.column_stack([np.asarray(x)[ok], np.asarray(y)[ok], z[ok]]), crs, vertical)
+            ecef = crs_to_ecef(np.column_stack([np.asarray(x)[ok], np.asarray(y)[ok], z[ok] + g.offset[2]]), crs, g.vertical,
+                               g.height_unit_m)
         except ValueError as e:
             raise GisFormatError(dem, f"cannot transform from {crs.name}: {e}") from None
         h[ok] = ecef_to_geodetic(ecef)[2]
