@@ -78,7 +78,7 @@ def missing_grid_message(group: TransformerGroup) -> str:
         return msg + (" (none is known for this vertical datum: convert the file to ellipsoidal or EGM96 heights first)")
     missing = [g for g in ops[0].grids if not g.available]
     names = ", ".join(g.short_name for g in missing)
-    where = os.pathsep.join(pyproj_datadir.get_data_dir().split(os.pathsep)[:1] + [pyproj_datadir.get_user_data_dir()])
+    where = ", ".join(pyproj_datadir.get_data_dir().split(os.pathsep)[:1] + [pyproj_datadir.get_user_data_dir()])
     package = "".join(f" (package {g.package_name})" for g in missing if g.package_name)
     return (f"{msg}: its best one ({ops[0].name}) needs the grid {names}{package}, not installed. Install it: "
             f"`pyproj sync --file {missing[0].short_name}` (the venv's pyproj; PROJ's own `projsync --file "
