@@ -61,8 +61,9 @@ from gis.model import GisFormatError, GisModel, model_from_npz
 
 
 #: bump when a loader's output for the same file changes, so that imports cached by an older one
-#: are not reused (``source_key``); 2: LAS thinning, 3D Tiles level of detail, cell-sorted points
-LOADER_VERSION = 2
+#: are not reused (``source_key``); 2: LAS thinning, 3D Tiles level of detail, cell-sorted points;
+#: 3: heights' datum and unit read or refused (gis.loaders.heights), a GeoTIFF's sidecar offset_m added
+LOADER_VERSION = 3
 
 
 def load_model(path: Path | str, sample_spacing_m: float = 1.0, ground: Ground = None) -> GisModel:
