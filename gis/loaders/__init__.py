@@ -30,6 +30,9 @@ Formats (dispatched on content, then extension):
   and Draco-compressed meshes (KHR_draco_mesh_compression, decoded by trimesh with DracoPy);
   point cloud tiles (pnts) too, thinned to the sampling spacing.
   Content URIs may carry a query (``?session=…``); see gis.providers for HTTP.
+- Heights (every format with a CRS of its own): their vertical datum and unit are read where the
+  file states them (a compound or 3D CRS, a LAS file's vertical GeoKeys), else from the sidecar's
+  ``vertical`` / ``vertical_unit``; a file stating neither is refused (gis.loaders.heights).
 - glTF files that require an extension changing geometry that we do not decode
   (EXT_meshopt_compression, KHR_mesh_quantization, …) are refused by name: trimesh would load
   placeholder zeros for them.

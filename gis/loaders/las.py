@@ -24,7 +24,8 @@ def load_las(path: Path, sample_spacing_m: float = 1.0) -> GisModel:
     coordinates) as it is read chunk by chunk: airborne surveys hold 10–50 points per m², which no
     registration here uses (the fine-tuner voxelises its crop at ``target_voxel_m``), and a 1 km²
     tile read whole would need several GB. A cloud sparser than the spacing keeps all its points.
-    Noise (classes 7, 18) and withheld points are dropped: they are no surface to register to."""
+    Noise (classes 7, 18) and withheld points are dropped: they are no surface to register to.
+    Heights: a compound CRS's, the vertical GeoKeys', else the sidecar's (gis.loaders.heights)."""
     import laspy
 
     pts, labs = [], []
