@@ -170,3 +170,50 @@ def test_a_barometer_ratio_no_slam_scale_error_explains_blames_the_model_heights
     chk = ScaleCheck(ratio, ratio - 0.05, ratio + 0.05, 50)
     assert chk.mismatch == (abs(ratio - 1) > 0.2)
     assert ("GIS model's heights or vertical datum are suspect" in chk.describe()) == suspect
+
+
+def _write_las_geokeys(path, p: np.ndarray, keys: dict[int, int]) -> None:
+    """A LAS 1.2 file whose CRS is GeoTIFF keys (UTM 32N, as laspy writes them) plus ``keys``
+    (VerticalCSTypeGeoKey 4096, VerticalUnitsGeoKey 4099), which laspy's parse_crs does not read."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.add_crs(CRS.from_user_input(UTM))
+    directory = next(v for v in hdr.vlrs if isinstance(v, GeoKeyDirectoryVlr))
+    for key_id, value in sorted(keys.items()):
+        entry = GeoKeyEntryStruct()
+        entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key_id, 0, 1, value
+        directory.geo_keys.append(entry)
+    directory.geo_keys_header.number_of_keys = len(directory.geo_keys)
+    hdr.offsets, hdr.scales = np.floor(p.min(axis=0)), [0.001] * 3
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = p.T
+    las.write(path)
+
+
+def test_las_vertical_geokeys_state_the_heights(tmp_path):
+    """GeoTIFF keys (LAS 1.2) may state the heights: VerticalCSTypeGeoKey 5773 (EGM96 height) is applied
+    as a compound CRS would be; VerticalUnitsGeoKey 9002 (foot) alone states the unit, the sidecar the
+    datum, and a sidecar unit contradicting the file's is refused."""
+    from gis.geodesy import msl_to_ellipsoid
+    rng = np.random.default_rng(6)
+    p = OFFSET + rng.uniform([0, 0, 0], [30, 30, 5], (300, 3))
+    msl = tmp_path / "msl.las"
+    _write_las_geokeys(msl, p, {4096: 5773, 4099: 9001})
+    stored = laspy.read(msl)
+    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(stored.x, stored.y)
+    if TransformerGroup("EPSG:32632+5773", "EPSG:4979", allow_ballpark=False).best_available:
+        h = _heights_m(load_model(msl, sample_spacing_m=0.01))
+        np.testing.assert_allclose(np.sort(h), np.sort(msl_to_ellipsoid(lat, lon, np.asarray(stored.z))), atol=0.02)
+    else:
+        with pytest.raises(GisFormatError, match="egm96"):
+            load_model(msl)
+    feet = tmp_path / "feet.las"
+    _write_las_geokeys(feet, p, {4099: 9002})
+    with pytest.raises(GisFormatError, match="vertical datum is not stated"):
+        load_model(feet)
+    _sidecar(feet, vertical="ellipsoid", vertical_unit="m")
+    with pytest.raises(GisFormatError, match="'vertical_unit' 'm' contradicts the file's own height unit"):
+        load_model(feet)
+    _sidecar(feet, vertical="ellipsoid")
+    h = _heights_m(load_model(feet, sample_spacing_m=0.01))
+    np.testing.assert_allclose(np.sort(h), np.sort(np.asarray(laspy.read(feet).z) * 0.3048), atol=1e-4)
