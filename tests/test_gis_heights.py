@@ -159,7 +159,7 @@ def test_sidecar_keys_are_honoured_or_refused_per_format(tmp_path):
     msl = tmp_path / "msl.las"
     _write_las(msl, "EPSG:32632+5773", p, OFFSET)
     _sidecar(msl, vertical="ellipsoid")
-    with pytest.raises(GisFormatError, match="the file states its heights' datum and unit .*remove 'vertical'"):
+    with pytest.raises(GisFormatError, match="the heights' datum and unit are stated already .*EGM96 height.*remove 'vertical'"):
         load_model(msl)
 
 

@@ -118,8 +118,10 @@ def georef_of(path: Path, fmt: str, file_crs: CRS | None, doc: dict, file_vertic
     if len(crs.axis_info) >= 3 or file_vertical is not None:
         stated = [k for k in ("vertical", "vertical_unit") if k in doc]
         if stated:
-            what = crs.name if file_vertical is None else f"its vertical CRS {file_vertical.name}"
-            raise GisFormatError(side, f"the file states its heights' datum and unit ({what}): remove {', '.join(map(repr, stated))}")
+            what = (f"its vertical CRS {file_vertical.name}" if file_vertical is not None else
+                    f"the sidecar's 'crs' {crs.name} is 3D" if "crs" in doc else crs.name)
+            raise GisFormatError(side, f"the heights' datum and unit are stated already ({what}): remove "
+                                       f"{', '.join(map(repr, stated))}")
         if file_vertical is not None:
             crs = CompoundCRS(f"{crs.name} + {file_vertical.name}", [crs, file_vertical])
         return Georef(crs, "ellipsoid", 1.0, _offset(side, doc, crs, crs.axis_info[2].unit_conversion_factor))
