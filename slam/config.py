@@ -37,7 +37,7 @@ class SlamConfig(BaseModel):
     reloc_min_inliers: int = Field(40, ge=10, le=1000, description="PnP inliers needed to accept a relocalization")
     reset_after_lost_frames: int = Field(90, ge=1, le=100000, description="frames lost before the map is abandoned and re-initialized (reset_counter+1)")
     # mapping
-    fuse_keyframes: int = Field(10, ge=0, le=200, description="after triangulating, a new keyframe's points are fused with those of this many most covisible keyframes: missed observations joined, duplicate points merged (ORB-SLAM SearchInNeighbors; slam.mapping.fuse_points); 0: off")
+    fuse_keyframes: int = Field(10, ge=0, le=200, description="after triangulating, a new keyframe's points are fused with those of this many most covisible keyframes: missed observations joined, duplicate points merged (ORB-SLAM SearchInNeighbors; slam.map_points.fuse_points); 0: off")
     local_map_keyframes: int = Field(20, ge=2, le=500, description="keyframes whose points form the tracker's local map")
     ba_iterations: int = Field(5, ge=1, le=100, description="Levenberg-Marquardt iterations per local BA")
     ba_nice: int = Field(0, ge=0, le=19, description="run the BA worker process this much below the tracking's priority (Unix niceness; 0: the same). On 2 shared cores 10 lowered the tracking latency P99 in 15 of 18 free-running bench flights (means 37.4 -> 35.1, 45.3 -> 40.3, 41.9 -> 40.5 ms) but the error after the GNSS loss was higher in 11 of 18 (0.52 -> 0.57 m mean): opt-in (docs/BENCHMARKS.md, \"Bundle adjustment at a lower priority\")")

@@ -1,6 +1,10 @@
 """Background thread: local mapping (triangulation, culling, local BA with PLM) and loop closing
 (place recognition, Sim(3) verification, full or recursive correction). Nothing here is called
-from the tracking thread; results reach it through ``Shared`` by reference swap."""
+from the tracking thread; results reach it through ``Shared`` by reference swap.
+
+This module holds the thread, the keyframe's processing and the memory cap; the bundle adjustments are
+slam.local_ba, loop closing slam.loop_closing (both mixed into LocalMapper), the operations on the
+map's points slam.map_points."""
 from __future__ import annotations
 
 import bisect
@@ -9,20 +13,20 @@ import queue
 import threading
 import time
 from collections import deque
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from itertools import chain
 
 import numpy as np
 
-from slam.ba import BAProblem, BAResult, ba_worker, bundle_adjust
+from slam.ba import ba_worker
 from slam.config import SlamConfig
-from slam.geometry import correct_pose_by_sim3, parallax_deg, project, ransac_sim3, sim3_share, triangulate
+from slam.geometry import triangulate
+from slam.local_ba import LocalBundleAdjustment
+from slam.loop_closing import LoopClosing
 from slam.map import Keyframe, MapSize, SlamMap
-from slam.matching import TH_LOW, candidates_by_projection, match_bf
+from slam.map_points import LEVELS_KEYFRAMES, TRIANGULATION_LOOKBACK, align_observations, cut_patches, fuse_points, triangulation_partners
+from slam.matching import match_bf
 from slam.patches import PatchAligner
 from slam.place import PlaceIndex, place_index_of
-from slam.plm import plm_window, recursive_loop_closing
 from slam.tracking import Shared
 from slam.types import MapUpdate
 
@@ -31,13 +35,6 @@ log = logging.getLogger(__name__)
 
 #: per-keyframe timing histories keep the latest this many entries (about 100 bytes per keyframe)
 STATS_HISTORY = 10_000
-# A bundle adjustment not back from its worker process after this long is abandoned: the worker is
-# restarted and mapping goes on without it. Measured BAs take 0.05-3.3 s on 2 cores (full-loop BA
-# the longest, docs/BENCHMARKS.md); on 2026-12-04 a local BA's job never reached an idle worker
-# under heavy load (3 processes on 2 cores), and with one local BA in flight at a time, mapping
-# then ran without local BA for the rest of the flight (cause in ProcessPoolExecutor not found).
-BA_TIMEOUT_S = 60.0
-NEVER_SEEN_KF_AGE = np.iinfo(np.int32).max  # a map point no held keyframe observes (map_point_arrays)
 
 
 def _history() -> deque:
@@ -113,234 +110,7 @@ class _Reset:
 _STOP = object()
 
 
-def _gravity_arrays(kfs: list[Keyframe]) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(P,3) g_cam (NaN rows without a prior) and (P,) sigmas for BAProblem; (None, None) when no
-    keyframe has a gravity prior (slam.use_attitude_prior off)."""
-    if all(kf.g_cam is None for kf in kfs):
-        return None, None
-    g = np.array([kf.g_cam if kf.g_cam is not None else np.full(3, np.nan) for kf in kfs], float)
-    sigma = np.array([kf.gravity_sigma_rad if kf.g_cam is not None else np.nan for kf in kfs], float)
-    return g, sigma
-
-
-def map_point_arrays(m: SlamMap, pids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(N,3) SLAM positions, (N,) observation counts, (N,) parallax (deg) and (N,) keyframe age of
-    the points ``pids``.
-
-    Parallax: the angle between the rays to a point from the first and the last keyframe that
-    observe it (0 when one does). A point's depth error grows as 1/parallax (a feature's bearing
-    noise of ~1 mrad gives ~0.5 m at 15° and 100–150 m range), so alignment can leave out the
-    poorly triangulated ones. Keyframe age: how many keyframes were created after the newest one
-    that observes the point (0: the newest keyframe sees it; a large sentinel when no keyframe the
-    map still holds does), so alignment can keep to the part of the map the camera is in now.
-    Vectorised over the flattened observations: a loop per point took
-    80 % of a full map snapshot, which runs on the tracking thread (docs/BENCHMARKS.md,
-    "Fine-tuning cost": "Map snapshot, vectorised parallax"). Call with m.lock held."""
-    pts = [m.points[p] for p in pids]
-    P = np.array([mp.p_slam for mp in pts], float).reshape(-1, 3)
-    n_obs = np.fromiter((len(mp.obs) for mp in pts), np.int64, len(pts))
-    kf = np.fromiter(chain.from_iterable(mp.obs for mp in pts), np.int64, int(n_obs.sum()))
-    owner = np.repeat(np.arange(len(pts)), n_obs)
-    # centres of the observing keyframes only: the map also holds up to max_trajectory_keyframes
-    # forgotten ones (pose only), and this runs on the tracking thread
-    ids = np.array([k for k in np.unique(kf).tolist() if k in m.keyframes], np.int64)
-    known = np.isin(kf, ids)  # an observation of a keyframe the map no longer holds does not count
-    kf, owner = kf[known], owner[known]
-    first = np.full(len(pts), np.iinfo(np.int64).max)
-    last = np.full(len(pts), -1)
-    np.minimum.at(first, owner, kf)
-    np.maximum.at(last, owner, kf)
-    two = np.bincount(owner, minlength=len(pts)) >= 2
-    centers = np.array([m.keyframes[k].center for k in ids.tolist()]).reshape(-1, 3)
-    A, B = P.copy(), P.copy()  # a point without two observing keyframes: zero-length rays → 0°
-    A[two] = centers[np.searchsorted(ids, first[two])]
-    B[two] = centers[np.searchsorted(ids, last[two])]
-    # keyframe ids are allocated in sequence (SlamMap.new_kf_id), so an id difference counts the
-    # keyframes made since; the newest is the last id handed out, held whole by the map
-    age = np.where(last >= 0, (m.keyframes_created - 1) - last, NEVER_SEEN_KF_AGE).astype(np.int64)
-    return P, n_obs.astype(np.int32), parallax_deg(P, A, B), age
-
-
-TRIANGULATION_LOOKBACK = 8  # earlier keyframes searched for a triangulation partner
-STARVING_TRACKED = 100  # a new keyframe tracking fewer map points than this gets a third, nearer partner
-STARVING_BASELINE_FRACTION = 0.4  # ... at least this share of the partners' baseline away
-
-
-def triangulation_partners(m: SlamMap, kf: Keyframe, ids: list[int], min_baseline_ratio: float) -> list[int]:
-    """Keyframe ids the new keyframe ``kf`` triangulates its unmatched features with: the 2 newest
-    (newest first) of the last TRIANGULATION_LOOKBACK earlier ones whose centre is at least
-    ``min_baseline_ratio`` × kf's median scene depth away (both in SLAM units: the ratio is
-    scale-free); only the previous keyframe when none is. With 0, or with < 10 tracked points to
-    measure the depth: the 2 previous keyframes, oldest first (the rule before this one).
-
-    Why: in a turn the tracker adds a keyframe every ``keyframe_max_rotation_deg``, a few metres
-    apart at 100+ m depth. Points triangulated between such neighbours have 1–2° of parallax, depth
-    errors of ~5–10 %, and they carried the map's scale 4–8 % off through each turn (the error after
-    a GNSS loss doubled; docs/BENCHMARKS.md). ORB-SLAM skips neighbours under 1 % of the depth
-    (LocalMapping::CreateNewMapPoints); ours needs more because the turn keyframes are dense.
-    ``ids`` is the map's keyframe ids in order, kf's last. Call with m.lock held.
-
-    Only earlier keyframes that share a point with kf qualify (when kf's points are seen by any):
-    a view of another place, which the baseline rule would prefer for its length, only triangulates
-    chance descriptor matches. After a relocalisation into an older part of the map (a resumed or
-    survey map) none of the newest keyframes does; the keyframes that share the most points with
-    kf (``SlamMap.covisible``) are the earlier ones then."""
-    earlier = ids[-TRIANGULATION_LOOKBACK - 1:-1]
-    pids = [p for p in kf.point_ids.tolist() if p >= 0 and p in m.points]
-    seen = {k for p in pids for k in m.points[p].obs} - {kf.kf_id}
-    if seen:
-        earlier = ([k for k in earlier if k in seen]
-                   or sorted(k for k in m.covisible(pids, TRIANGULATION_LOOKBACK + 1) if k != kf.kf_id))
-    if min_baseline_ratio <= 0:
-        return earlier[-2:]
-    if len(pids) < 10:  # no depth to compare with
-        return earlier[-2:]
-    P = np.array([m.points[p].p_slam for p in pids])
-    depth_slam = float(np.median(P @ kf.T_cam_slam[2, :3] + kf.T_cam_slam[2, 3]))  # along the optical axis
-    c = kf.center
-    dist = {i: float(np.linalg.norm(m.keyframes[i].center - c)) for i in earlier}
-    far = [i for i in reversed(earlier) if dist[i] >= min_baseline_ratio * depth_slam]
-    parts = far[:2] or earlier[-1:]
-    if len(pids) < STARVING_TRACKED:
-        # the tracker is running out of points (a turn: keyframes every 10 deg, the partners far
-        # enough away are the ones whose view is leaving); add the newest keyframe at a
-        # STARVING_BASELINE_FRACTION of that baseline, whose view still overlaps
-        near = [i for i in reversed(earlier) if i not in parts
-                and dist[i] >= STARVING_BASELINE_FRACTION * min_baseline_ratio * depth_slam]
-        parts += near[:1]
-    return parts
-
-
-FUSE_RADIUS_PX = 3.0  # a neighbour's point must project this close to a feature (ORB-SLAM Fuse, th=3)
-
-
-def fuse_points(m: SlamMap, K: np.ndarray, kf: Keyframe, pids: list[int], protect_upto: int = -1,
-                aligner: PatchAligner | None = None) -> tuple[int, int]:
-    """Project map points ``pids`` into keyframe ``kf`` and join each to the feature it lands on
-    (ORB-SLAM's Fuse in SearchInNeighbors): the closest descriptor within FUSE_RADIUS_PX and
-    Hamming TH_LOW. A feature without a point gains the observation; a feature that holds another
-    point is one physical point triangulated twice, and the two become one (the one with more
-    observations stays; a point with id <= ``protect_upto``, a loaded map's, is never the one
-    fused away). Without this a point the tracker missed for a frame or two was triangulated again
-    beside itself, each copy seen by fewer keyframes (nominal, 900 frames: 6 360 keyframe views of a
-    point landed on a feature that held another point; fusing merges a third of them and adds 18 %
-    more observations, docs/BENCHMARKS.md). With ``aligner`` and kf's image still held, a joined
-    observation is placed where the point's reference patch aligns (slam.patches). Caller holds
-    m.lock. Returns (observations added, points fused)."""
-    pids = [p for p in pids if p in m.points and kf.kf_id not in m.points[p].obs]
-    if not pids or not kf.has_features:
-        return 0, 0
-    P = np.array([m.points[p].p_slam for p in pids])
-    uv, z = project(K, kf.T_cam_slam, P)
-    front = np.flatnonzero(z > 0)
-    if len(front) == 0:
-        return 0, 0
-    desc = np.array([m.points[pids[j]].desc for j in front.tolist()])
-    hd, idx = candidates_by_projection(uv[front], desc, kf.uv_px, kf.desc, FUSE_RADIUS_PX, k=8)
-    b = np.argmin(hd, axis=1)
-    rows = np.arange(len(front))
-    d1, feat = hd[rows, b], idx[rows, b]
-    ok = np.flatnonzero(d1 <= TH_LOW)
-    ok = ok[np.argsort(d1[ok], kind="stable")]
-    _, first = np.unique(feat[ok], return_index=True)  # each feature to its closest descriptor
-    fused = 0
-    joined: list[tuple[int, int]] = []  # (feature, point)
-    for i in ok[first].tolist():
-        f, pid = int(feat[i]), pids[int(front[i])]
-        held = int(kf.point_ids[f])
-        if pid not in m.points or kf.kf_id in m.points[pid].obs:
-            continue  # fused away or joined earlier in this pass
-        if held < 0 or held not in m.points:
-            m.points[pid].obs[kf.kf_id] = f
-            kf.point_ids[f] = pid
-            joined.append((f, pid))
-            continue
-        keep, drop = (pid, held) if len(m.points[pid].obs) >= len(m.points[held].obs) else (held, pid)
-        if drop <= protect_upto:
-            keep, drop = drop, keep
-            if drop <= protect_upto:
-                continue  # both loaded: left as the map was saved
-        m.replace_point(drop, keep)
-        fused += 1
-    if aligner is not None:
-        align_observations(aligner, m, kf, [(f, p) for f, p in joined if p in m.points])
-    return len(joined), fused
-
-
-def loop_shares(m: SlamMap, loop: list[int], window: set[int], S: np.ndarray, center: np.ndarray,
-                 loaded_upto: int) -> dict[int, np.ndarray]:
-    """Loop correction for the keyframes inside the loop that the correction's window leaves
-    out: keyframe ids ``loop`` run from the old keyframe (untouched) to the current one (moved by
-    S with ``window``). Each of the others gets the share of S (slam.geometry.sim3_share, about
-    ``center``) of its distance along the loop's camera path, so the loop's middle follows both
-    ends. Without this only the window moved: the keyframes just before it kept the drifted
-    coordinates beside the corrected ones, and on the `loop` flight's second lap the tracker
-    met both, relocalised, and drifted off the first lap again (5-20 m, loops re-closed every
-    10-20 s; docs/BENCHMARKS.md "Loop closing keeps the whole loop continuous"). A loaded map's
-    keyframes (id <= loaded_upto) never move. Caller holds m.lock."""
-    inner = [k for k in loop[1:-1] if k not in window and k > loaded_upto]
-    if not inner:
-        return {}
-    C = np.array([m.keyframes[k].center for k in loop])
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
-    if along[-1] <= 0:
-        return {}
-    share = dict(zip(loop, (along / along[-1]).tolist()))
-    return {k: sim3_share(S, share[k], center) for k in inner}
-
-
-def move_by_corrections(m: SlamMap, corrections: dict[int, np.ndarray], protect_upto: int = -1) -> None:
-    """Move each keyframe of ``corrections`` (kf id → similarity, p_new = S p_old) and each of
-    their points by its reference keyframe's correction (ORB-SLAM's CorrectLoop); a point whose
-    reference keyframe has none stays, and so does a loaded map's (id <= ``protect_upto``).
-    Caller holds m.lock."""
-    moved: set[int] = set()
-    for k, S_k in corrections.items():
-        kfk = m.keyframes[k]
-        kfk.T_cam_slam = correct_pose_by_sim3(kfk.T_cam_slam, S_k)
-        for pid in kfk.point_ids[kfk.point_ids >= 0].tolist():
-            if pid in moved or pid not in m.points or pid <= protect_upto:
-                continue
-            moved.add(pid)
-            p = m.points[pid]
-            S_p = corrections.get(p.first_kf)
-            if S_p is not None:
-                p.p_slam = S_p[:3, :3] @ p.p_slam + S_p[:3, 3]
-
-
-def align_observations(aligner: PatchAligner, m: SlamMap, kf: Keyframe, obs: list[tuple[int, int]]) -> int:
-    """Move kf's features ``obs`` ((feature, point) pairs) to where their points' reference patches
-    align in kf's image (slam.patches); those without a patch, or kf without its image, stay.
-    Caller holds m.lock. Returns how many moved."""
-    obs = [(f, p) for f, p in obs if m.points[p].patch is not None]
-    if kf.levels is None or not obs:
-        return 0
-    f = np.array([o[0] for o in obs])
-    pts = [m.points[o[1]] for o in obs]
-    uv, ok = aligner.align(kf.levels, np.array([p.patch for p in pts]), np.array([p.patch_octave for p in pts]), kf.uv_px[f])
-    kf.uv_px[f[ok]] = uv[ok]
-    return int(ok.sum())
-
-
-LEVELS_KEYFRAMES = 10  # the newest keyframes keep their image for patch alignment (~1 MB each at 640x480)
-
-
-def cut_patches(aligner: PatchAligner, m: SlamMap, kf: Keyframe) -> int:
-    """Give every point kf observes that has no reference patch one, cut from kf's image at its
-    observation (slam.patches). Caller holds m.lock. Returns how many were given one."""
-    if kf.levels is None:
-        return 0
-    f = np.array([i for i, p in enumerate(kf.point_ids.tolist()) if p >= 0 and p in m.points and m.points[p].patch is None], int)
-    if len(f) == 0:
-        return 0
-    octave = kf.levels.octave[f]
-    patches, ok = aligner.cut(kf.levels, kf.uv_px[f], octave)
-    for j in np.flatnonzero(ok).tolist():
-        m.points[int(kf.point_ids[f[j]])].set_patch(patches[j], octave[j])
-    return int(ok.sum())
-
-
-class LocalMapper:
+class LocalMapper(LocalBundleAdjustment, LoopClosing):
     def __init__(self, K: np.ndarray, config: SlamConfig, shared: Shared, slam_map: SlamMap,
                  reset_counter: int = 0, keep_loaded: bool = False, aligner: PatchAligner | None = None) -> None:
         self.K = K
@@ -551,132 +321,6 @@ class LocalMapper:
             for pid in [p.point_id for p in m.points.values() if p.first_kf == old and len(p.obs) < 3]:
                 m.remove_point(pid)
 
-    def _local_ba(self, kf: Keyframe, ids: list[int]) -> None:
-        c = self.config
-        w = c.local_window
-        prev = [self.map.keyframes[i].center for i in ids[:-1][-w:]]
-        prev_t = np.array([self.map.keyframes[i].t_s for i in ids[:-1][-w:]])
-        win = (plm_window(np.array(prev), kf.center, w, prev_t, kf.t_s)
-               if c.progressive_local_mapping and len(prev) >= 2 else w)
-        if self._pending_ba is not None:
-            return  # one local BA in flight at a time; this keyframe's points are mapped already
-        n_fixed = c.ba_fixed_keyframes or max(2, w // 2)
-        self._n_local_ba += 1
-        if c.periodic_ba_every_keyframes and self._n_local_ba % c.periodic_ba_every_keyframes == 0:
-            # occasional larger window (still in the worker process); PLM halves it as well while
-            # the motion is reliable (Eq. 4), so straight stretches do not pay for the turns
-            win = max(win, c.periodic_ba_window if win >= w else c.periodic_ba_window // 2)
-        job = self._build_ba(ids[-win:], max_fixed=n_fixed)
-        if job is not None:
-            self.stats.ba_window.append(win)
-            self._pending_ba = (self._ba.submit(bundle_adjust, job[0]), job, kf, time.monotonic())
-
-    def _finish_ba(self, wait: bool) -> None:
-        """Apply the in-flight local BA once it is done (BA never holds up new keyframes' mapping)."""
-        if self._pending_ba is None:
-            return
-        fut, job, kf, t_submit = self._pending_ba
-        late = time.monotonic() - t_submit > BA_TIMEOUT_S
-        if not (wait or fut.done() or late):
-            return
-        try:  # pending until applied and published (wait_idle)
-            try:
-                res: BAResult = fut.result(timeout=max(0.0, t_submit + BA_TIMEOUT_S - time.monotonic()))
-            except TimeoutError:
-                self.stats.ba_timeouts += 1
-                self._ba.restart(f"a local BA was not back after {BA_TIMEOUT_S:.0f} s: skipped")
-                return
-            except BrokenProcessPool:
-                log.error("bundle-adjustment worker died during a local BA: that BA is skipped")
-                return
-            except Exception:
-                log.exception("bundle adjustment failed")
-                return
-            self._apply_ba(res, job)
-            self.stats.local_ba_ms.append(res.solve_ms)
-            self.stats.local_ba_cpu_ms.append(res.solve_cpu_ms)
-            with self.map.lock:
-                ids = self.map.kf_ids()
-            if ids:
-                self._publish(ids, kf)
-        finally:
-            self._pending_ba = None
-
-    def _run_ba(self, kf_ids: list[int], max_fixed: int) -> BAResult | None:
-        """Synchronous BA (loop closing): build, solve in the worker process, write back."""
-        job = self._build_ba(kf_ids, max_fixed)
-        if job is None:
-            return None
-        try:
-            res: BAResult = self._ba.submit(bundle_adjust, job[0]).result(timeout=BA_TIMEOUT_S)
-        except TimeoutError:
-            self.stats.ba_timeouts += 1
-            self._ba.restart(f"a loop-closing BA was not back after {BA_TIMEOUT_S:.0f} s: skipped")
-            return None
-        except BrokenProcessPool:
-            log.error("bundle-adjustment worker died during a loop-closing BA: that BA is skipped")
-            return None
-        except Exception:
-            log.exception("bundle adjustment failed")
-            return None
-        self._apply_ba(res, job)
-        return res
-
-    def _build_ba(self, kf_ids: list[int], max_fixed: int):
-        """BA problem for these keyframes (+ fixed neighbours that see their points)."""
-        m = self.map
-        c = self.config
-        with m.lock:
-            kf_ids = [k for k in kf_ids if k in m.keyframes and m.keyframes[k].has_features]
-            pids = sorted({int(p) for k in kf_ids for p in m.keyframes[k].point_ids if p >= 0})
-            pids = [p for p in pids if p in m.points]
-            if len(pids) < 10:
-                return None
-            win = set(kf_ids)
-            border = {k for p in pids for k in m.points[p].obs if k not in win and k in m.keyframes}
-            # hold the border keyframes closest (in keyframe order) to the window; a local window's
-            # border is all older, so these are the newest; a loop window with two ends (RLC, Alg. 1
-            # line 1) gets anchors at both ends instead of a free-floating old end
-            fixed_ids = sorted(sorted(border, key=lambda k: (min(abs(k - w) for w in win), -k))[:max_fixed])
-            all_ids = fixed_ids + kf_ids
-            fixed = np.array([k in fixed_ids or k <= self._loaded_upto for k in all_ids])
-            if fixed.sum() < 2:  # gauge: monocular BA needs >= 2 held poses (7 DoF)
-                fixed[: 2] = True
-            pose_idx = {k: i for i, k in enumerate(all_ids)}
-            pt_idx = {p: j for j, p in enumerate(pids)}
-            o_pose, o_pt, o_uv = [], [], []
-            for p in pids:
-                for k, f in m.points[p].obs.items():
-                    if k in pose_idx:
-                        o_pose.append(pose_idx[k])
-                        o_pt.append(pt_idx[p])
-                        o_uv.append(m.keyframes[k].uv_px[f])
-            g_cam, g_sigma = _gravity_arrays([m.keyframes[k] for k in all_ids])
-            prob = BAProblem(self.K, np.array([m.keyframes[k].T_cam_slam for k in all_ids]), fixed,
-                             np.array([m.points[p].p_slam for p in pids]), np.array(o_pose), np.array(o_pt),
-                             np.array(o_uv), max_iterations=c.ba_iterations, g_cam=g_cam, gravity_sigma_rad=g_sigma,
-                             fixed_points=np.array(pids) <= self._loaded_pt_upto if self._loaded_pt_upto >= 0 else None)
-        return prob, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose
-
-    def _apply_ba(self, res: BAResult, job) -> None:
-        """Write BA results back (skipping what was removed meanwhile) and drop bad observations."""
-        _, m, all_ids, fixed, pose_idx, pids, o_pt, o_pose = job
-        c = self.config
-        with m.lock:
-            if m is not self.map:
-                return
-            levelled = job[0].levelled_anchors  # fixed by their centres only: re-oriented by BA
-            for k, T in zip(all_ids, res.T_cam_slam):
-                if k in m.keyframes and (not fixed[pose_idx[k]] or levelled[pose_idx[k]]):
-                    m.keyframes[k].T_cam_slam = T
-            for p, X in zip(pids, res.points_slam):
-                if p in m.points:
-                    m.points[p].p_slam = X
-            bad = np.flatnonzero(~(res.residual_px < c.max_reproj_px))
-            for b in bad:
-                m.remove_observation(pids[o_pt[b]], all_ids[o_pose[b]])
-        self._changed = pids
-
     def _publish_local_map(self, ids: list[int], kf: Keyframe | None = None) -> None:
         """The tracker's local map. In a map loaded from disk: ``ids`` whole, kf's neighbourhood
         (``_neighbourhood``: its covisible keyframes and the nearest loaded ones). Else the newest
@@ -765,127 +409,3 @@ class LocalMapper:
             size = self.map.size()
         return MapMemory(size, len(self._anchors), len(self._place), self._place.nbytes(), self._inbox.qsize(),
                          len(self.updates), self.updates.dropped)
-
-    # --- loop closing ---------------------------------------------------------------------------
-    def _loop(self, kf: Keyframe) -> None:
-        c = self.config
-        cands = self._place.query(kf.desc, exclude_after_kf_id=kf.kf_id - c.loop_min_gap_keyframes)
-        self._place.add(kf.kf_id, kf.desc)
-        if kf.kf_id < self._loop_cooldown_until:
-            return
-        with self.map.lock:
-            own = set(kf.point_ids[kf.point_ids >= 0].tolist())
-            shared = {cand.kf_id: len(own & set(self.map.keyframes[cand.kf_id].point_ids.tolist()))
-                      for cand in cands if cand.kf_id in self.map.keyframes}
-        for cand in cands[:2]:
-            if cand.score < c.loop_min_score:
-                break
-            log.debug("loop candidate %d score %.3f shared %d", cand.kf_id, cand.score, shared.get(cand.kf_id, 0))
-            if shared.get(cand.kf_id, 0) >= c.loop_min_inliers // 2:
-                continue  # already connected through common map points: nothing to close
-            S = self._verify(kf, cand.kf_id)
-            if S is not None and self._correct(kf, cand.kf_id, S):
-                self._loop_cooldown_until = kf.kf_id + c.local_window
-                return
-
-    def _verify(self, kf: Keyframe, old_id: int):
-        """Sim(3) between the current keyframe's points and the candidate's (3D-3D RANSAC)."""
-        m = self.map
-        with m.lock:
-            old = m.keyframes.get(old_id)
-            if old is None or len(old.desc) == 0:
-                return None
-            a = np.flatnonzero(kf.point_ids >= 0)
-            b = np.flatnonzero(old.point_ids >= 0)
-            a = a[[int(kf.point_ids[i]) in m.points for i in a]]
-            b = b[[int(old.point_ids[i]) in m.points for i in b]]
-            pairs = match_bf(kf.desc[a], old.desc[b], ratio=0.8, max_dist=64)
-            if len(pairs) < self.config.loop_min_inliers:
-                return None
-            pa = [int(kf.point_ids[a[i]]) for i in pairs[:, 0]]
-            pb = [int(old.point_ids[b[j]]) for j in pairs[:, 1]]
-            src = np.array([m.points[p].p_slam for p in pa])
-            dst = np.array([m.points[p].p_slam for p in pb])
-            depth = np.median(np.linalg.norm(src - kf.center, axis=1))
-        S, inl = ransac_sim3(src, dst, thresh=0.03 * depth)
-        if S is None or inl.sum() < self.config.loop_min_inliers:
-            return None
-        self._loop_pairs = [(pa[i], pb[i]) for i in np.flatnonzero(inl)]
-        return S
-
-    def _correct(self, kf: Keyframe, old_id: int, S: np.ndarray) -> bool:
-        """Move the current keyframe and its covisible recent keyframes by S (ORB-SLAM's loop
-        correction neighbourhood) and the keyframes between them and the old one by a share of S
-        (``loop_shares``), each point with its reference keyframe; fuse the matched points, then
-        BA: Algorithm 1 (recursive) or the whole loop at once (full) — same starting state, so the
-        two are comparable. With a map loaded from disk, its keyframes and points never move (its
-        alignment registers them where they are): they stay out of the moved window and survive
-        every fusion, and a loop from a keyframe that sees them to one of the flight's own is not
-        closed (False): the current keyframe is held by the loaded map already, and the correction
-        would pull it towards the flight's drifted part, off the map its alignment registers."""
-        c = self.config
-        w = c.local_window
-        m = self.map
-        with m.lock:
-            sees_loaded = bool(np.any((kf.point_ids >= 0) & (kf.point_ids <= self._loaded_pt_upto)))
-            if 0 <= self._loaded_upto < old_id and sees_loaded:
-                log.info("loop %d -> %d not closed: keyframe %d is held by the loaded map's points", kf.kf_id, old_id, kf.kf_id)
-                return False
-        self._finish_ba(wait=True)
-        t0 = time.perf_counter()
-        with m.lock:
-            ids = m.kf_ids()
-            start, cur = ids.index(old_id), ids.index(kf.kf_id)
-            own = set(kf.point_ids[kf.point_ids >= 0].tolist())
-            # (never a loaded map's keyframes: its alignment registers them where they are)
-            window = {k for k in ids[max(cur - w, start + 1):cur]
-                      if k > self._loaded_upto and len(own & set(m.keyframes[k].point_ids.tolist())) >= c.loop_min_inliers // 2}
-            window.add(kf.kf_id)
-            corrections = {k: S for k in window}
-            corrections.update(loop_shares(m, ids[start:cur + 1], window, S, kf.center, self._loaded_upto))
-            move_by_corrections(m, corrections, self._loaded_pt_upto)
-            for new_pid, old_pid in self._loop_pairs:
-                if new_pid > self._loaded_pt_upto:  # (a loaded point is never the one fused away)
-                    m.replace_point(new_pid, old_pid)
-        self._correction_gen += 1
-        self.shared.correction = (self._correction_gen, S)
-
-        def ba(idx: list[int]) -> None:
-            self._run_ba([ids[i] for i in idx], max_fixed=w)
-
-        def centers():
-            with m.lock:
-                return [m.keyframes[k].center for k in ids]
-
-        if c.loop_closing == "recursive":
-            with m.lock:
-                times = [m.keyframes[k].t_s for k in ids]
-            windows = recursive_loop_closing(start, cur, w, ba, centers, times)
-        else:
-            windows = [list(range(start, cur + 1))]
-            ba(windows[0])
-        self.stats.loop_ba_keyframes.append(sum(len(x) for x in windows))
-        self.stats.loop_ms.append((time.perf_counter() - t0) * 1e3)
-        self.stats.loops.append((old_id, kf.kf_id))
-        self.stats.n_loops += 1
-        self._publish_full()
-        return True
-
-    def _publish_full(self) -> None:
-        with self.map.lock:
-            self._publish_local_map(self.map.kf_ids())
-            self.updates.put(self._snapshot(full=True))
-
-    def _snapshot(self, full: bool) -> MapUpdate:
-        m = self.map
-        with m.lock:
-            pids = sorted(m.points)
-            ids = m.kf_ids()[-self.config.local_window:]
-            P, n_obs, parallax, age = map_point_arrays(m, pids)
-            return MapUpdate(
-                t_s=m.keyframes[ids[-1]].t_s if ids else 0.0,
-                points_slam=P, point_ids=np.array(pids, np.int64), n_obs=n_obs,
-                keyframe_t_s=np.array([m.keyframes[k].t_s for k in ids]),
-                keyframe_centers_slam=np.array([m.keyframes[k].center for k in ids]).reshape(-1, 3),
-                reset_counter=self.reset_counter, full=full, map_id=self.reset_counter,
-                parallax_deg=parallax, last_seen_kf_age=age)

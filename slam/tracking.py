@@ -210,7 +210,7 @@ class Tracker:
             pids = np.full(len(feats), -1, np.int64)
             pids[est.inlier_feat] = est.inlier_pid
             # its image goes with it: local mapping moves the tracked points' observations to where
-            # their patches align (slam.mapping.align_observations), off this thread
+            # their patches align (slam.map_points.align_observations), off this thread
             kf = self._keyframe(frame, est.T_cam_slam.copy(), feats, pids, self._gravity, self._levels_of(frame, feats))
             self._keyed(est.T_cam_slam, n)
         return TrackResult(state, est.T_cam_slam, n, new_keyframe=kf)

@@ -63,7 +63,7 @@ class ForkedWorker:
 
     def restart(self, why: str) -> None:
         """Abandon the current process (killed, its queued jobs cancelled) and fork a new one: for a
-        job that will not come back (see slam.mapping.BA_TIMEOUT_S)."""
+        job that will not come back (see slam.local_ba.BA_TIMEOUT_S)."""
         with self._lock:
             if self._pool is None:
                 return

@@ -14,9 +14,11 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (CHI2_999, LEVEL_NORMAL_Z, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SURFACE_RADIUS_M, SURFACE_STEP_M,
-                             SYS_OFFSET_FRACTION, WALL_RADIUS_M, FineTuner, _Basin, _Crop, _gauss_newton_step, _Icp, _jacobian,
-                             _measurement_cov, _nearest, _nearest_among, _normal_equations, _update, enu_sim3, nadir_scale_ratio)
+from gis.align.crop import _Crop
+from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin,
+                            _measurement_cov, _update, enu_sim3)
+from gis.align.icp import _gauss_newton_step, _Icp, _jacobian, _nearest, _nearest_among, _normal_equations
+from gis.align.scale_check import LEVEL_NORMAL_Z, SURFACE_RADIUS_M, SURFACE_STEP_M, WALL_RADIUS_M, nadir_scale_ratio
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer
@@ -551,7 +553,7 @@ def test_the_fine_tuner_compiles_where_no_numba_cache_directory_is_writable():
         "    raise OSError(30, 'Read-only file system')\n"
         "caching._CacheLocator.ensure_cache_path = read_only\n"
         "logging.basicConfig(level=logging.WARNING)\n"
-        "import gis.align.fine as F\n"
+        "import gis.align.icp as F\n"
         "F.compile_kernels()\n"
         "print('signatures', len(F._gauss_newton_step.signatures), type(F._gauss_newton_step._cache).__name__)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,

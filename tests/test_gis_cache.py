@@ -297,7 +297,8 @@ def test_service_maps_an_unchanged_model_from_the_cache_and_imports_a_changed_on
     path = tmp_path / "city.ply"
     mesh, _ = box_city_mesh(120.0, seed=3)
     mesh.export(path)
-    path.with_name("city.ply.georef.json").write_text(json.dumps({"crs": "EPSG:32632", "offset_m": [465000, 5250000, 400]}))
+    path.with_name("city.ply.georef.json").write_text(json.dumps({"crs": "EPSG:32632", "offset_m": [465000, 5250000, 400],
+                                                                   "vertical": "ellipsoid"}))
     cfg = AppConfig(gis=GisConfig(model=path, cache_dir=tmp_path / "cache", sample_spacing_m=2.0))
     cache = GisCache(cfg.gis.cache_dir)
     first, site, file = load_gis_model(cfg, cache)
@@ -361,6 +362,7 @@ def test_local_provider_finds_every_supported_format_in_a_folder(tmp_path):
     header = {k: v for k, v in cube.items() if k not in ("CityObjects", "vertices")} | {"CityObjects": {}, "vertices": []}
     feature = {"type": "CityJSONFeature", "id": "b1", "CityObjects": cube["CityObjects"], "vertices": cube["vertices"]}
     (tmp_path / "city.city.jsonl").write_text(json.dumps(header) + "\n" + json.dumps(feature) + "\n")
+    (tmp_path / "city.city.jsonl.georef.json").write_text(json.dumps({"vertical": "ellipsoid"}))  # (UTM is 2D)
     (tmp_path / "notes.txt").write_text("not a model")
     from pyproj import Transformer
     lon, lat = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True).transform(OFFSET[0] + 50, OFFSET[1] + 50)

@@ -122,7 +122,8 @@ def test_point_cloud_whose_heights_leave_the_earth_is_refused(tmp_path):
     p = np.random.default_rng(0).uniform([0, 0, 0], [50, 50, 1.0], (500, 3))
     path = tmp_path / "cloud.ply"
     o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)))
-    path.with_name("cloud.ply.georef.json").write_text(json.dumps({"crs": UTM, "offset_m": [OFFSET[0], OFFSET[1], 2e5]}))
+    path.with_name("cloud.ply.georef.json").write_text(json.dumps({"crs": UTM, "offset_m": [OFFSET[0], OFFSET[1], 2e5],
+                                                                       "vertical": "ellipsoid"}))
     with pytest.raises(GisFormatError, match=r"cloud.ply: (\d+) of \1 points are not near the Earth.s surface"):
         load_model(path)
 
@@ -140,12 +141,13 @@ def test_las_laz_with_crs_and_classification(tmp_path, ext, monkeypatch):
     las.classification = np.where(p[:, 2] - OFFSET[2] < 1, GROUND, BUILDING).astype(np.uint8)
     path = tmp_path / f"cloud.{ext}"
     las.write(path)
+    path.with_name(path.name + ".georef.json").write_text(json.dumps({"vertical": "ellipsoid"}))  # (UTM is 2D)
     m = load_model(path)
     stored = laspy.read(path)
     p = np.column_stack([stored.x, stored.y, stored.z])  # voxels of the file's mm-quantised coordinates
     idx = _assert_thinned(_model_ecef(m), _utm_to_ecef(p), p, 1.0)
     np.testing.assert_array_equal(m.labels, np.asarray(las.classification)[idx])
-    monkeypatch.setattr(loaders, "LAS_CHUNK_POINTS", 300)  # read in 7 chunks: voxels straddling chunks kept once
+    monkeypatch.setattr(loaders.las, "LAS_CHUNK_POINTS", 300)  # read in 7 chunks: voxels straddling chunks kept once
     chunked = load_model(path)
     _assert_thinned(_model_ecef(chunked), _utm_to_ecef(p), p, 1.0)
     dense = load_model(path, sample_spacing_m=0.1)  # a spacing finer than the cloud keeps every point
@@ -168,6 +170,11 @@ def _cityjson_cube(size=20.0, h=15.0):
         "CityObjects": {"b1": {"type": "Building", "geometry": [{"type": "Solid", "lod": "2", "boundaries": [faces]}]}},
         "vertices": (np.asarray(v) * 1000).astype(int).tolist(),
     }
+
+
+def _ellipsoidal(path):
+    """The sidecar that states a file's heights (its CRS is 2D UTM) are WGS 84 ellipsoidal metres."""
+    path.with_name(path.name + ".georef.json").write_text(json.dumps({"vertical": "ellipsoid"}))
 
 
 def _write_dsm(path, crs="EPSG:32632", vertical="ellipsoid", res_m=0.5):
@@ -260,6 +267,7 @@ def test_cityjson_geometry_instances_and_point_geometries(tmp_path):
     doc["CityObjects"]["lamp"] = {"type": "CityFurniture", "geometry": [{"type": "MultiPoint", "lod": "1", "boundaries": [ref]}]}
     path = tmp_path / "trees.city.json"
     path.write_text(json.dumps(doc))
+    _ellipsoidal(path)
     m = load_model(path, sample_spacing_m=0.5)
     x, y, z = Transformer.from_crs("EPSG:4978", UTM, always_xy=True).transform(*_model_ecef(m)[m.labels == HIGH_VEGETATION].T)
     q = np.stack([x, y, z], 1) - OFFSET
@@ -280,6 +288,7 @@ def test_cityjson_seq_features_with_their_own_vertices(tmp_path):
                          "vertices": [[x, y + north_mm, z] for x, y, z in cube["vertices"]]})
     path = tmp_path / "tile.city.jsonl"
     path.write_text("\n".join(json.dumps(d) for d in [header, *features]) + "\n")
+    _ellipsoidal(path)
     m = load_model(path, sample_spacing_m=1.0)
     x, y, z = Transformer.from_crs("EPSG:4978", UTM, always_xy=True).transform(*_model_ecef(m).T)
     q = np.stack([x, y, z], 1) - OFFSET
@@ -339,6 +348,7 @@ def test_a_vertical_datum_without_its_grid_is_refused_not_guessed(tmp_path):
 def test_cityjson_building(tmp_path):
     path = tmp_path / "city.json"
     path.write_text(json.dumps(_cityjson_cube()))
+    _ellipsoidal(path)
     m = load_model(path, sample_spacing_m=1.0)
     assert np.all(m.labels == BUILDING)
     tr = Transformer.from_crs("EPSG:4978", UTM, always_xy=True)

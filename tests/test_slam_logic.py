@@ -103,11 +103,11 @@ def test_a_loop_correction_gives_the_loops_middle_its_share_so_no_step_opens_in_
     """A loop of 48 keyframes around a 60 m circle, flown with a heading drift of 0.1° and a
     scale drift of 0.2 % a keyframe, closes back at its start. The loop's S moves the window
     (the newest 3 keyframes) onto the start; the keyframes in between get a share of S by their
-    distance along the loop (slam.mapping.loop_shares), and each point moves with its reference
+    distance along the loop (slam.loop_closing.loop_shares), and each point moves with its reference
     keyframe. With the window alone moved, the step into the window was 7.7 m off the true one
     (checked); with the shares every step is within 0.8 m of the true 8 m."""
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import loop_shares, move_by_corrections
+    from slam.loop_closing import loop_shares, move_by_corrections
 
     n, r, d_rot, d_scale = 48, 60.0, np.deg2rad(0.1), 1.002
     ang = np.linspace(0, 2 * np.pi, n)
@@ -435,7 +435,7 @@ def test_reliable_region_with_uneven_keyframe_times_reduces_to_eq4():
 
 def test_point_parallax_is_the_angle_between_the_first_and_last_observing_rays():
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import map_point_arrays
+    from slam.map_points import map_point_arrays
 
     m = SlamMap()
     for x_m in (0.0, 5.0, 10.0):  # three cameras on a line, 10 m apart at the ends, looking down (+z)
@@ -463,7 +463,7 @@ def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
     A keyframe that tracks few points (the tracker starving in a turn) also gets the newest
     keyframe at least 0.4 of that baseline away (2 m here), whose view still overlaps its own."""
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import STARVING_TRACKED, triangulation_partners
+    from slam.map_points import STARVING_TRACKED, triangulation_partners
 
     def turn(n_pts: int):
         m = SlamMap()
@@ -554,7 +554,7 @@ def test_triangulation_partners_after_a_relocalisation_are_the_keyframes_that_sh
     nothing with the new keyframe; its partners are the old keyframes that see its points (views
     of another place would only triangulate chance matches)."""
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import triangulation_partners
+    from slam.map_points import triangulation_partners
 
     m = SlamMap()
     n_pts = 12
@@ -580,7 +580,7 @@ def test_fuse_points_joins_missed_observations_and_merges_duplicates_but_never_a
     the nearest feature (both left alone); point 4 on a feature held by a loaded (survey) point
     seen once: the flight's point is fused into it, not the other way round."""
     from slam.map import Keyframe, SlamMap
-    from slam.mapping import FUSE_RADIUS_PX, fuse_points
+    from slam.map_points import FUSE_RADIUS_PX, fuse_points
 
     rng = np.random.default_rng(3)
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])

@@ -260,10 +260,10 @@ def test_a_bundle_adjustment_that_never_returns_is_abandoned_and_mapping_goes_on
     """A BA job that does not come back from its worker (seen once under heavy load: the job never
     reached the idle worker) no longer stops local BA for the rest of the flight: after BA_TIMEOUT_S
     the worker is restarted and mapping goes on; tracking never waits for it."""
-    import slam.mapping
+    import slam.local_ba
 
-    monkeypatch.setattr(slam.mapping, "BA_TIMEOUT_S", 1.0)
-    monkeypatch.setattr(slam.mapping, "bundle_adjust", _ba_that_never_returns)
+    monkeypatch.setattr(slam.local_ba, "BA_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(slam.local_ba, "bundle_adjust", _ba_that_never_returns)
     states = []
     with SlamSystem(nominal.camera, SlamConfig()) as s:
         for i in range(100):

@@ -3,7 +3,9 @@
 - ``model.ply`` triangle mesh (binary PLY, per-face ``classification`` = ASPRS code) with its
   ``model.ply.georef.json`` sidecar (CONTRIBUTING.md): UTM coordinates minus ``offset_m``,
   ellipsoidal heights.
-- ``model.laz`` point cloud (LAS 1.4, point format 6) with ASPRS classification and a WKT CRS VLR.
+- ``model.laz`` point cloud (LAS 1.4, point format 6) with ASPRS classification and a WKT CRS VLR
+  (UTM, 2D: there is no EPSG vertical CRS for ellipsoidal heights), its heights stated in the
+  ``model.laz.georef.json`` sidecar: ellipsoidal, metres.
 - ``buildings.geojson`` footprints (RFC 7946 lon/lat; third coordinate = ellipsoidal height of the
   footprint base) with ``height`` (m above base), ``min_height`` and MSL heights as properties.
 Every vertex goes ENU → geodetic → UTM through PROJ (no flat-earth shortcut).
@@ -72,6 +74,7 @@ def write_points_las(world: World, path: Path, crs: str, spacing_m: float = 1.0,
     las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
     las.classification = labels
     las.write(str(path))
+    path.with_name(path.name + ".georef.json").write_text(json.dumps({"vertical": "ellipsoid", "vertical_unit": "m"}, indent=2) + "\n")
     return path
 
 

@@ -4,18 +4,9 @@ One registration = crop the GIS model around the current position (fixed size, s
 not grow with the model), voxel-downsample both clouds, then a scale-aware point-to-plane ICP.
 The crop is made of 25 m tiles voxelised once on a global grid and cached; its KD-tree is reused
 while the next registration needs no tile outside it, and any crop holding a registration's tiles
-gives it the same correspondences (_CropCache).
+gives it the same correspondences (gis.align.crop). The ICP itself is gis.align.icp, the barometer
+check gis.align.scale_check.
 
-- Correspondences: nearest GIS point (pykdtree, C, vectorised queries; ``finetune_threads``
-  OpenMP threads; between ICP steps only for the points whose last search's NN_CANDIDATES
-  nearest model points no longer decide it, _nearest), coarse-to-fine
-  distances (max_correspondence_m, /2, /4) with a Tukey kernel that shrinks with them
-  (max(robust_kernel_m, ½ · distance)); a fixed 0.5 m kernel gave zero weight to every residual
-  from a 3 m guess and the ICP never moved.
-- Solve: each iteration is one Gauss–Newton step of the point-to-plane cost of digital-twin Eq. 2
-  (Tukey IRLS) over rotation, translation and log-scale; the Jacobian row is Eq. 9's A_j extended
-  by the scale column n_j·a_j. Written by hand: no library here does point-to-plane with scale;
-  the step is compiled with numba (_gauss_newton_step), the correspondences are pykdtree's.
 - Degrees of freedom: all 7 (rotation, translation, scale), with or without a prior; the
   cloud's apparent tilt is a systematic term of the measurement (below) and the Kalman update
   weighs it against the prior's. An earlier version held the tilt at the prior's whenever there
@@ -91,17 +82,9 @@ Uncertainty (what a fix may trust) — random + systematic + basin, then a Bayes
   bench, `nominal` seeds 0–5: 3D error after the loss 1.033 against 1.093 m (4 of 6 better),
   height 0.39 against 0.49 m, horizontal unchanged, 0 violations (docs/BENCHMARKS.md,
   "The barometric height in the registration").
-- Barometer check (beyond the papers; with ``camera_h_ell_m``): before the ICP, the barometric
-  height of the camera over the level GIS surface under each SLAM point near nadir, divided by
-  its SLAM height under the alignment (nadir_scale_ratio); if even the lower quartile of these
-  ratios is above 1 + MAX_SCALE_MISMATCH, or even the upper quartile below 1 − MAX_SCALE_MISMATCH
-  (3σ order-statistic bounds), the registration is refused with SCALE_MISMATCH_REASON and the
-  pipeline withholds fixes (the map under the camera no longer has the alignment's scale).
-  ``check_scale`` runs the same test alone on the points the camera is tracking now (within
-  TRACKED_RADIUS_M); the pipeline calls it every second between registrations. A registration's
-  crop mixes older points, which may still fit after the map's scale broke under the camera: at
-  the first registration after demo seed 4's break the points near nadir gave a median ratio of
-  0.65 with a robust SD of 0.24, too mixed to flag.
+- Barometer check (beyond the papers; with ``camera_h_ell_m``): gis.align.scale_check; a
+  registration whose map under the camera is off the alignment's scale is refused with
+  SCALE_MISMATCH_REASON.
 - Gates (§V: "registration declared unsuccessful"): too few points, fitness, inlier RMSE,
   degeneracy of the data alone (Eq. 8–9 along its weakest position / rotation / scale direction:
   a single facade is refused, the prior does not rescue it; and restarts that slide more than
@@ -128,40 +111,29 @@ the truth it stays at 0.15 m. 0 of 239 accepted registrations were beyond 3σ (l
 priors are refused. With a FINE prior (covariance intersection) the gain is smaller still. The
 limit is the SLAM cloud (numbers above), not the solver.
 
-Cost (issue 5): nearest-neighbour searches were most of it (pykdtree 0.28 µs per point, scipy's
-cKDTree 0.36, identical neighbours; real SLAM crops hold 200–1400 points after the voxel filter,
-and 4 ICPs × up to 36 iterations run); since 2026-12-07 a point is searched again only when its
-kept candidates cannot decide its nearest model point (_nearest), and each Gauss–Newton step is
-one compiled call (_gauss_newton_step). Levels
-stop once a step moves no point more than ICP_STEP_TOL_M; on real clouds the IRLS still creeps by
-centimetres at the end of a level, so most levels run their 12 iterations, as before. Measured
-on 28 real-SLAM map snapshots (nominal + stale, 400 frames, 7 priors each): thread CPU 135 → 80 ms
-mean per registration, same accuracy and integrity; on 28 journaled registrations 70 → 35 ms with
-the two changes of 2026-12-07, identical alignments (docs/BENCHMARKS.md, "Fine-tuning cost").
+Cost: see gis.align.icp.
 
 Thread-safe: the only state after construction is the crop cache (behind a lock) and the
 model's lazily built grid index (built once, eagerly, in the constructor).
 """
 from __future__ import annotations
 
-import itertools
 import logging
 import math
-import threading
 import time
-from collections import OrderedDict, deque
-from dataclasses import dataclass, field, replace
-from functools import cached_property
+from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import open3d as o3d
-from pykdtree.kdtree import KDTree
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
+from gis.align.crop import TILE_M, _Crop, _CropCache, _in_square
 from gis.align.georef import GeorefCorrection, IcpMeasurement
+from gis.align.icp import _evaluate, _icp, _Icp, compile_kernels
+from gis.align.scale_check import (MAX_SCALE_MISMATCH, NADIR_RADIUS_M, SCALE_MISMATCH_REASON, TRACKED_MAX_SCALE_MISMATCH,
+                                   TRACKED_RADIUS_M, WALL_RADIUS_M, ScaleCheck, nadir_scale_ratio)
+from gis.align.scale_check import NADIR_MIN_POINTS  # noqa: F401 (companion.pipeline imports it from here)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.model import GisModel
@@ -170,8 +142,7 @@ from gis.types import Alignment, AlignmentSource
 
 log = logging.getLogger(__name__)
 
-ICP_ITERATIONS_PER_LEVEL = 12
-KERNEL_FRACTION = 0.5          # Tukey width per level = max(robust_kernel_m, this × correspondence distance)
+
 RANDOM_INFLATION = 4.0         # variance factor of σ²H⁻¹ for correlated neighbouring points
 SYS_OFFSET_FRACTION = 1.5      # systematic translation 1-σ ≥ this × σ_MAD (module doc: 0.75, added to the spread, gave NEES 4.4–8.5)
 SPREAD_FRACTION = 0.5          # ... and ≥ this × the restarts' translation spread (module doc: the optimum sat 0.2–0.6 × it off)
@@ -186,31 +157,7 @@ STANDALONE_MAX_SPREAD_M = 0.5  # without a prior to check against, the optimum m
 MAX_PRIOR_SIGMA_M = 2.5        # ICP's basin on real SLAM clouds is ≈3 m: a vaguer prior cannot be refined safely
 CHI2_999 = 24.32               # χ² 99.9 % quantile, 7 degrees of freedom
 UNKNOWN_VAR = 1e4              # variance standing for "not known" (rad², m², log-scale²)
-ICP_STEP_TOL_M = 0.005         # a level has converged when a Gauss–Newton step moves no cloud point more than this
-COARSE_LEVEL_STRIDE = 2        # the two coarse ICP levels on every 2nd source point, the last on all (_icp)
-CORR_REUSE_STEP_M = 0.1        # after an ICP step that moved no point more than this, the next step keeps its correspondences (_icp)
-NN_CANDIDATES = 6              # nearest model points kept per SLAM point between searches (_nearest) ...
-NN_SEARCH_MARGIN_M = 0.5       # ... searched for this far beyond the correspondence distance
 MAX_SOURCE_POINTS = 1500       # SLAM points per registration after the voxel filter (random subset beyond)
-TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
-MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
-PREFETCH_MAX_STEP_M = 150.0    # a prefetched crop reaches at most this far beyond the last registration's (_CropCache.prefetch)
-PREFETCH_MARGIN_M = TILE_M     # ... and this far around the guessed one (turns; journals: 4 of 5 registrations after the second found it built, 3 of 5 without)
-# Scale check against the barometer (beyond the papers; docs/BENCHMARKS.md "Fine-tuning update"):
-SCALE_MISMATCH_REASON = "SLAM scale under the camera disagrees with the barometer"
-NADIR_RADIUS_M = 30.0          # SLAM points within this horizontal distance of the camera are tested
-NADIR_MIN_POINTS = 20          # fewer: no test
-TRACKED_MAX_SCALE_MISMATCH = 0.12  # check_scale's tolerance: a frame over trees the model lacks read a lower
-                               # quartile up to 1.077 (demo seeds 1, 2, 4); offline, maps shrunk 20 % were flagged
-                               # by 99–100 % of the checks, 15 % by 48–94 %, 10 % by 13–18 % (docs/BENCHMARKS.md)
-TRACKED_RADIUS_M = 150.0       # check_scale: the tracked points this close (horizontally); a forward-looking
-                               # camera's are 40–200 m away (a 0.5° tilt error then moves k by ≤ 2 %)
-SURFACE_RADIUS_M = 1.5         # the model surface under a point: level model points this close (horizontally)
-WALL_RADIUS_M = 3.0            # ... and no wall of the model this close: a point on a facade, a metre or two off
-                               # it, found only ground (or roof) within SURFACE_RADIUS_M and read k ≈ 1.5 (`loop` seed 1)
-SURFACE_STEP_M = 1.0           # level model surfaces under a point further apart in height: an edge, no test
-LEVEL_NORMAL_Z = 0.8           # a model point on a level surface (ground, roof): |normal up-component| above this
-MAX_SCALE_MISMATCH = 0.06      # |k − 1| tolerated beyond the quartiles' 3σ bounds (demo seeds 0/4/5: good registrations' medians 0.946–1.022, the scale break 1.080–1.084)
 
 
 @dataclass(frozen=True)
@@ -237,29 +184,6 @@ class Registration:
 
 
 @dataclass(frozen=True)
-class ScaleCheck:
-    """The barometer against the SLAM map under the camera (nadir_scale_ratio): per point, k_i =
-    barometric ÷ SLAM height of the camera over the model surface under the point."""
-
-    ratio: float     # median k_i (nan: too few points to test)
-    low: float       # lower 3σ confidence bound of the 25 % quantile of k_i
-    high: float      # upper 3σ confidence bound of the 75 % quantile of k_i
-    n_points: int
-    tolerance: float = MAX_SCALE_MISMATCH
-
-    @property
-    def mismatch(self) -> bool:
-        """The map under the camera is not at the alignment's scale: even its lower quarter of
-        points is more than ``tolerance`` too close to the camera (the map shrank), or even its
-        upper quarter too far (it grew)."""
-        return math.isfinite(self.ratio) and (self.low > 1.0 + self.tolerance or self.high < 1.0 - self.tolerance)
-
-    def describe(self) -> str:
-        return (f"ratio {self.ratio:.3f} over {self.n_points} points, quartiles beyond {self.low:.3f} … "
-                f"{self.high:.3f} (3σ; tolerance 1 ± {self.tolerance:g})")
-
-
-@dataclass(frozen=True)
 class _Basin:
     """How far the basin check's restarts ended from the ICP optimum, per degree of freedom (largest
     over the restarts): translation of the crop centre, rotation about each ENU axis, log-scale."""
@@ -275,159 +199,9 @@ class _Basin:
                       max(self.log_scale, abs(math.log(other.scale / optimum.scale))))
 
 
-@dataclass(frozen=True)
-class _Icp:
-    T: Sim3                   # increment in centred ENU coordinates
-    fitness: float
-    rmse_m: float             # inlier RMSE (|r| < inlier_distance_m)
-    H7: np.ndarray            # 7x7 Gauss–Newton Hessian [rot, trans, log-scale] at the crop centre (inliers)
-    n_inliers: int
-    centroid: np.ndarray      # inlier centroid, centred coordinates (lever arm of the systematic tilt)
-    sigma_mad_m: float        # 1.4826·MAD of all matched residuals (not truncated at the inlier distance)
-
-
 def enu_sim3(origin: LocalFrame) -> Sim3:
     """T_ecef_enu as a Sim3."""
     return Sim3(1.0, origin.R_ecef_enu, origin.origin_ecef_m)
-
-
-@dataclass(frozen=True)
-class _Crop:
-    """The GIS model over a box of whole tiles, voxelised on the global voxel grid, with its KD-tree
-    (ENU coordinates). Tiles are concatenated in index order, so any crop holding a tile holds the
-    same points for it in the same order: a registration gets the same correspondences from any
-    crop that covers the tiles it needs."""
-
-    box: tuple[int, int, int, int]   # tile indices (i0, j0, i1, j1), inclusive
-    tile_m: float
-    points: np.ndarray
-    normals: np.ndarray
-    tree: KDTree | None              # pykdtree (ICP correspondences); None for an empty crop (pykdtree
-                                     # refuses one; registrations stop at the GIS-crop gate first)
-
-    @cached_property
-    def tree_en(self) -> cKDTree:
-        """The points' horizontal coordinates, for radius searches over most of the crop
-        (nadir_scale_ratio); built when first asked for: 6 ms for a crop of the demo flight, three
-        times its 3-D KD-tree, and a registration's own check needs only the crop's middle."""
-        return cKDTree(self.points[:, :2], balanced_tree=False)
-
-    def covers(self, box: tuple[int, int, int, int]) -> bool:
-        i0, j0, i1, j1 = self.box
-        return i0 <= box[0] and j0 <= box[1] and box[2] <= i1 and box[3] <= j1
-
-    def spacing_m(self, c_enu: np.ndarray, half_m: float) -> float:
-        """Median nearest-neighbour distance of the crop's points within half_m of c_enu (≤ 300,
-        taken in the crop's order: the same whichever covering crop is asked)."""
-        inner = np.flatnonzero(_in_square(self.points, c_enu, half_m))
-        if len(inner) < 2:
-            return 0.0
-        sample = self.points[inner[:: max(1, len(inner) // 300)]]
-        return float(np.median(self.tree.query(sample, k=2)[0][:, 1]))
-
-
-class _CropCache:
-    """Fixed-size GIS crops (digital-twin §III-E) without rebuilding them every registration:
-    the model is voxelised per tile once (LRU-cached), and the last crop of each user (``slot``:
-    the registrations, the barometer checks) and its KD-tree are reused while that user's next
-    request needs no tile outside it. Thread-safe."""
-
-    def __init__(self, model: GisModel, voxel_m: float) -> None:
-        self._model = model
-        self._voxel_m = voxel_m
-        self.tile_m = voxel_m * max(1, round(TILE_M / voxel_m))  # tile edges on voxel edges: no voxel straddles two tiles
-        self._tiles: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self._last: dict[str, _Crop] = {}
-        self._asked: dict[str, deque] = {}  # per slot, the last two requests: (centre EN m, half_m)
-        self._lock = threading.Lock()
-        self.n_built = 0  # crops (KD-trees) built so far
-
-    def last(self, slot: str = "registration") -> _Crop | None:
-        return self._last.get(slot)
-
-    def _box(self, c_enu: np.ndarray, half_m: float) -> tuple[int, int, int, int]:
-        lo = np.floor((np.asarray(c_enu[:2], float) - half_m) / self.tile_m).astype(int)
-        hi = np.floor((np.asarray(c_enu[:2], float) + half_m) / self.tile_m).astype(int)
-        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
-
-    def get(self, c_enu: np.ndarray, half_m: float, slot: str = "registration", margin_m: float = 0.0) -> _Crop:
-        """A crop holding every model point within half_m (horizontally, square) of c_enu; a new
-        one reaches margin_m further, so that a moving user rebuilds it less often."""
-        box = self._box(c_enu, half_m)
-        with self._lock:
-            self._asked.setdefault(slot, deque(maxlen=2)).append((np.array(c_enu[:2], float), half_m))
-            last = self._last.get(slot)
-            if last is not None and last.covers(box):
-                return last
-            return self._build(self._box(c_enu, half_m + margin_m), slot)
-
-    def prefetch(self, slot: str = "registration") -> bool:
-        """Build, ahead of time, the crop the slot's next request will probably need, so that
-        request finds it built (the next registration then skips voxelising its new tiles and the
-        KD-tree: about a quarter of a registration's CPU on the journals of a moving camera, which
-        needed a new crop every time). The guess: the next request lies as far on from the last
-        one as that one from the one before (at most PREFETCH_MAX_STEP_M); the crop covers both
-        the last request's box and the guessed one's, PREFETCH_MARGIN_M wider for a turn, so any
-        request along the way is covered too (a registration every 20 s while GNSS is trusted,
-        then every 5 s in a denial, at the same speed, lands between them). True when a crop was
-        built; False when fewer than two requests were made or the slot's crop already covers
-        the guess. Any crop covering a request gives it the same points in the same order
-        (_Crop), so a prefetched crop changes no result, only when the work is done."""
-        with self._lock:
-            asked = self._asked.get(slot)
-            if asked is None or len(asked) < 2:
-                return False
-            (c0, _), (c1, half_m) = asked
-            step = c1 - c0
-            n = float(np.hypot(*step))
-            if n > PREFETCH_MAX_STEP_M:
-                step *= PREFETCH_MAX_STEP_M / n
-            a, b = self._box(c1, half_m), self._box(c1 + step, half_m + PREFETCH_MARGIN_M)
-            box = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
-            last = self._last.get(slot)
-            if last is not None and last.covers(box):
-                return False
-            self._build(box, slot)
-            return True
-
-    def _build(self, box: tuple[int, int, int, int], slot: str) -> _Crop:
-        """The crop over ``box`` (tile indices), the slot's crop from now on (lock held)."""
-        keys = [(i, j) for j in range(box[1], box[3] + 1) for i in range(box[0], box[2] + 1)]
-        self._voxelise_missing([k for k in keys if k not in self._tiles])
-        parts = [self._tiles[k] for k in keys]
-        for k in keys:
-            self._tiles.move_to_end(k)
-        while len(self._tiles) > max(MAX_CACHED_TILES, len(keys)):
-            self._tiles.popitem(last=False)
-        pts = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3))
-        nrm = np.concatenate([n for _, n in parts]) if parts else np.zeros((0, 3))
-        crop = _Crop(box, self.tile_m, pts, nrm, KDTree(pts) if len(pts) else None)
-        self._last[slot] = crop
-        self.n_built += 1
-        return crop
-
-    def _voxelise_missing(self, keys: list[tuple[int, int]]) -> None:
-        """Voxelise the model over the given tiles in one pass: one model crop over their bounding
-        box, each point assigned to the tile that floor(east/north / tile_m) names (a point on a
-        tile edge goes to one tile), the points of tiles not asked for dropped. One crop, not one
-        per tile: the model's 50 m index cells made each 25 m tile crop sort through up to 16× its
-        points (≈0.6 ms a tile; 16 → 10 ms per registration of the demo flight)."""
-        if not keys:
-            return
-        k = np.asarray(keys, np.int64)
-        idx = self._model.crop_box(k.min(axis=0) * self.tile_m, (k.max(axis=0) + 1) * self.tile_m)
-        p = self._model.points_enu[idx]
-        tile = np.floor(p[:, :2] / self.tile_m).astype(np.int64)
-        want = np.isin(tile[:, 1] * (1 << 32) + tile[:, 0], k[:, 1] * (1 << 32) + k[:, 0])
-        p, n = _voxel_global(p[want], self._model.normals_enu[idx[want]], self._voxel_m)
-        tile = np.floor(p[:, :2] / self.tile_m).astype(int)
-        order = np.lexsort((tile[:, 0], tile[:, 1]))  # stable: voxel order kept within a tile
-        p, n, tile = p[order], n[order], tile[order]
-        for key in keys:
-            lo, hi = np.searchsorted(tile[:, 1], key[1], "left"), np.searchsorted(tile[:, 1], key[1], "right")
-            row = tile[lo:hi, 0]
-            a, b = lo + np.searchsorted(row, key[0], "left"), lo + np.searchsorted(row, key[0], "right")
-            self._tiles[key] = (p[a:b], n[a:b])
 
 
 class FineTuner:
@@ -711,81 +485,6 @@ class FineTuner:
         return B @ np.linalg.inv(cov7[:6, :6]) @ B.T
 
 
-def nadir_scale_ratio(src: np.ndarray, crop: _Crop, c: np.ndarray, up_baro_m: float,
-                      radius_m: float = NADIR_RADIUS_M, tolerance: float = MAX_SCALE_MISMATCH) -> ScaleCheck:
-    """The ratios, over the SLAM points p_i within radius_m (horizontally) of the camera, of
-
-        k_i = (up_baro_m − (z_model(p_i) − c_z)) / (−p_i,z)
-
-    with src the points in ENU centred on the camera (the camera at 0), up_baro_m the barometric
-    camera height in the same coordinates, and z_model the height of the level model surface
-    (ground, roof: normal within ~37° of vertical) within SURFACE_RADIUS_M of p_i horizontally that
-    is nearest to p_i in height. Points over walls only, and points near an edge (level model
-    surfaces more than SURFACE_STEP_M apart in height within that radius: roof and ground) are
-    skipped: a map a few percent off in scale moves its points metres sideways there, onto the
-    other surface (in a box city 25 % of the points read k_i < 0.8 or > 1.15 before). So are points
-    with a wall of the model within WALL_RADIUS_M: a point on a facade that its triangulation put a
-    metre or two off the wall finds only the ground within SURFACE_RADIUS_M, and reads the height
-    of the facade above it as scale (`loop` seed 1: 55–65 % of the tested points, lower quartile's
-    bound 1.17–1.18 and fixes withheld at 78 s and for the rest of the denial from 212 s, while the
-    track kept its scale within 3 %; without them 1.01, median 1.06).
-    k_i is the true height of the
-    camera over what it sees divided by the height the SLAM map and the alignment give it: 1 when
-    the map under the camera has the alignment's scale, 1.06 at every point when it has shrunk 6 %
-    (a scale break in a turn). A vertical shift of the alignment moves camera and points together
-    and leaves k alone.
-
-    Quartiles, not the median: points on what the model lacks (trees, cars, new buildings) sit
-    above its surface and read k_i > 1 (a 10 m tree under a camera 76 m up: 1.15), and points on
-    walls read anything. Measured on demo seed 1 at 67–70 s, over trees: median 1.23–1.32 while the
-    camera moved at the alignment's scale (0.94–1.07 per second against truth); the lower
-    quartile's bound stayed ≤ 1.06. A
-    shrunk map moves even its lowest (ground) points, so the lower quartile; a grown one the upper.
-    Their bounds are order statistics at ranks n·q ∓ 3·√(n·q·(1 − q)) (binomial: no distribution
-    assumed, and narrow where the ground points crowd). Written by hand: sorting and two ranks.
-    Not tested (nan) with fewer than NADIR_MIN_POINTS usable points."""
-    near = src[(np.hypot(src[:, 0], src[:, 1]) < radius_m) & (src[:, 2] < -1.0)]
-    untested = ScaleCheck(float("nan"), float("nan"), float("nan"), len(near), tolerance)
-    if len(near) < NADIR_MIN_POINTS:
-        return untested
-    q = near[:, :2] + c[:2]
-    i0, j0, i1, j1 = crop.box  # either tree finds the same neighbours, in the same order
-    if (2 * (radius_m + WALL_RADIUS_M)) ** 2 < 0.5 * (i1 - i0 + 1) * (j1 - j0 + 1) * crop.tile_m ** 2:
-        # a registration's check, in the crop's middle: a tree over the points it can reach
-        local = np.flatnonzero(_in_square(crop.points, c, radius_m + WALL_RADIUS_M))
-        hits = cKDTree(crop.points[local, :2], balanced_tree=False).query_ball_point(q, WALL_RADIUS_M)
-    else:  # check_scale's wide radius: the crop's own tree, built once for the crop
-        local, hits = None, crop.tree_en.query_ball_point(q, WALL_RADIUS_M)
-    # The neighbourhoods flattened to (point, model point) pairs, in the search's order: one
-    # numpy pass instead of a Python loop per point (check_scale tests ~1000 points).
-    counts = np.fromiter(map(len, hits), np.intp, count=len(hits))
-    owner = np.repeat(np.arange(len(near)), counts)
-    j = np.fromiter(itertools.chain.from_iterable(hits), np.intp, count=int(counts.sum()))
-    if local is not None:
-        j = local[j]
-    walled = np.zeros(len(near), bool)  # one level surface (ground, roof) only, and no wall near
-    walled[owner[np.abs(crop.normals[j, 2]) <= LEVEL_NORMAL_Z]] = True
-    keep = ~walled[owner] & (np.hypot(*(crop.points[j, :2] - q[owner]).T) <= SURFACE_RADIUS_M)
-    owner, z = owner[keep], crop.points[j[keep], 2]
-    z_model = np.full(len(near), np.nan)
-    if len(owner):
-        # by point, then by height from the point (stable: the search's order among ties)
-        order = np.lexsort((np.abs(z - (near[owner, 2] + c[2])), owner))
-        owner, z = owner[order], z[order]
-        first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-        level = np.maximum.reduceat(z, first) - np.minimum.reduceat(z, first) <= SURFACE_STEP_M
-        z_model[owner[first[level]]] = z[first[level]]
-    ok = np.isfinite(z_model)
-    n = int(ok.sum())
-    if n < NADIR_MIN_POINTS:
-        return replace(untested, n_points=n)
-    k = np.sort((up_baro_m - (z_model[ok] - c[2])) / (-near[ok, 2]))
-    half = 3.0 * math.sqrt(n * 0.25 * 0.75)
-    low = k[max(int(math.floor(0.25 * n - half)), 0)]
-    high = k[min(int(math.ceil(0.75 * n + half)), n - 1)]
-    return ScaleCheck(float(np.median(k)), float(low), float(high), n, tolerance)
-
-
 def _data_cov(icp: _Icp, cfg: AlignmentConfig) -> np.ndarray | None:
     """σ²·H⁻¹ over [rot, trans, log-scale] (Eq. 8–9, the data alone; σ the inlier RMSE, floored);
     None when H is singular."""
@@ -841,282 +540,6 @@ def _scalar_update(x: np.ndarray, P: np.ndarray, i: int, z: float, var: float) -
     return x + K * (z - x[i]), 0.5 * (Pp + Pp.T)
 
 
-def _jit(fn):
-    """numba.njit (nogil) with numba's on-disk cache; without it where numba finds no writable cache
-    directory (a read-only install run without NUMBA_CACHE_DIR or a home: numba refuses to import
-    such a function), and then compile_kernels compiles at every start."""
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError as e:
-        log.warning("%s; compiling it at every start (set NUMBA_CACHE_DIR to a writable directory)", e)
-        return numba.njit(nogil=True)(fn)
-
-
-def compile_kernels() -> None:
-    """Compile the ICP's numba kernels for the argument types _icp passes them (or load them from
-    numba's on-disk cache: ``__pycache__`` beside this file, else NUMBA_CACHE_DIR / the user's cache
-    directory), so that the first registration does not pay for it: 8.5 s on the 2-core x86 VM
-    the first time, 0.3 s from the cache. Later calls cost microseconds."""
-    p = np.zeros((8, 3))
-    _gauss_newton_step(p, np.zeros(8, np.uint32), p, p, np.zeros(3), 1.0, np.eye(3), np.zeros(3), 1.0, 1.0)
-    _nearest_among(p, np.zeros((8, NN_CANDIDATES), np.uint32), p, np.zeros(8), p, 1.0)
-
-
-def _icp(src: np.ndarray, crop: _Crop, c: np.ndarray, T0: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> Sim3:
-    """Scale-aware point-to-plane ICP (Gauss–Newton, Tukey IRLS) over [rot, trans, log-scale] in
-    coordinates centred at c, from T0.
-
-    Each iteration: the correspondences (nearest model points within the level's distance: _nearest,
-    which searches the KD-tree only for points that moved too far from their last search), then one Gauss–Newton step of
-    digital-twin Eq. 2 with the Jacobian rows A_j of Eq. 9 extended by the scale column n_j·a_j. A level ends when a step moves
-    no cloud point more than ICP_STEP_TOL_M (10× below the σ floor).
-
-    The two coarse levels (max_correspondence_m, /2) run on every COARSE_LEVEL_STRIDE-th source
-    point and the last level on all of them, so where a registration settles is decided by the
-    whole cloud. The KD-tree queries are most of a registration's cost and each level usually runs
-    all its iterations: this saves about a third of them. After a step that moved no cloud point
-    more than CORR_REUSE_STEP_M (a tenth of the model's 1 m voxel spacing, so a nearest model
-    point seldom changes), the next step is solved on the same correspondences instead of a new
-    query (two Gauss–Newton steps per query, as ICP variants with inner iterations do); a level
-    ends on a converged step only when its correspondences were fresh (docs/BENCHMARKS.md,
-    "Fine-tuning cost"). Each step (_gauss_newton_step) is compiled."""
-    # contiguous float64 throughout: the argument types compile_kernels compiled for
-    s, R, t, c = float(T0.scale), np.ascontiguousarray(T0.R, float), np.ascontiguousarray(T0.t, float), np.ascontiguousarray(c, float)
-    reach_m = float(np.max(np.linalg.norm(src, axis=1))) if len(src) else 0.0
-    for level in range(3):
-        max_d = max(cfg.max_correspondence_m / 2**level, min_corr_m)
-        k = max(cfg.robust_kernel_m, KERNEL_FRACTION * max_d)
-        pts = np.ascontiguousarray(src if level == 2 else src[::COARSE_LEVEL_STRIDE], float)
-        if level != 1:
-            cand = None  # level 1 runs on level 0's points: their candidates carry over
-        j, step_m, fresh = None, math.inf, True
-        for _ in range(ICP_ITERATIONS_PER_LEVEL):
-            fresh = j is None or step_m >= CORR_REUSE_STEP_M or not fresh
-            if fresh:
-                j, cand = _nearest(crop, s * pts @ R.T + (t + c), max_d, cand)
-            ok, s, R, t, step_m = _gauss_newton_step(pts, j, crop.points, crop.normals, c, s, R, t, k, reach_m)
-            if not ok:
-                break
-            if step_m < ICP_STEP_TOL_M and fresh:
-                break
-    return Sim3(s, R, t)
-
-
-@dataclass
-class _Candidates:
-    """Each query point's NN_CANDIDATES nearest model points when it was last searched for (crop
-    indices, nearest first; len(model) where fewer were within the bound), where it was then
-    (anchor) and how far that search is known to be complete (radius: the last candidate's
-    distance, or the search bound where fewer were found)."""
-
-    idx: np.ndarray      # (N, K) uint32
-    anchor: np.ndarray   # (N, 3) query positions, crop ENU [m]
-    radius_m: np.ndarray  # (N,)
-
-
-def _search(crop: _Crop, q: np.ndarray, bound_m: float, max_d: float) -> tuple[np.ndarray, _Candidates]:
-    """(nearest crop point within max_d of each q, len(model) for none; the candidates within
-    bound_m ≥ max_d): one KD-tree query."""
-    d, i = crop.tree.query(q, k=NN_CANDIDATES, distance_upper_bound=bound_m)
-    j = np.where(d[:, 0] < max_d, i[:, 0], len(crop.points)).astype(np.uint32)
-    return j, _Candidates(i, q.copy(), np.where(np.isfinite(d[:, -1]), d[:, -1], bound_m))
-
-
-def _nearest(crop: _Crop, q: np.ndarray, max_d: float, cand: _Candidates | None) -> tuple[np.ndarray, _Candidates]:
-    """Index of the nearest crop point within max_d of each query point q (len(model): none), as
-    one KD-tree query with that bound gives it, and the candidates it came from.
-
-    Exact without a search for a point that moved δ from where its candidates were searched for:
-    every model point not among them lay ≥ radius from there, so ≥ radius − δ from here (triangle
-    inequality); where the nearest candidate is closer than that, it is the nearest point; where
-    radius − δ ≥ max_d and no candidate is within max_d, no point is. The other points are searched
-    again (pykdtree, NN_CANDIDATES nearest within max_d + NN_SEARCH_MARGIN_M: the margin lets a
-    point with no model point in reach keep that answer while it moves less than the margin).
-    Measured on 28 journaled registrations: identical alignments, 15 % of the points searched
-    per step, registration CPU ×0.75 (docs/BENCHMARKS.md, "Fine-tuning cost"). Written here, not
-    taken from a library: KD-tree libraries answer each query from scratch."""
-    bound_m = max_d + NN_SEARCH_MARGIN_M
-    if cand is None:
-        return _search(crop, q, bound_m, max_d)
-    j, stale = _nearest_among(q, cand.idx, cand.anchor, cand.radius_m, crop.points, max_d)
-    if stale.any():
-        k = np.flatnonzero(stale)
-        j[k], again = _search(crop, q[k], bound_m, max_d)
-        cand.idx[k], cand.anchor[k], cand.radius_m[k] = again.idx, again.anchor, again.radius_m
-    return j, cand
-
-
-@_jit
-def _nearest_among(q: np.ndarray, idx: np.ndarray, anchor: np.ndarray, radius_m: np.ndarray,
-                   model_points: np.ndarray, max_d: float) -> tuple[np.ndarray, np.ndarray]:
-    """(j, stale) of _nearest: j the nearest candidate within max_d where the candidates decide it
-    (len(model) for none), stale where they do not."""
-    n_model = model_points.shape[0]
-    j = np.full(q.shape[0], n_model, np.uint32)
-    stale = np.zeros(q.shape[0], np.bool_)
-    for i in range(q.shape[0]):
-        moved = math.sqrt((q[i, 0] - anchor[i, 0]) ** 2 + (q[i, 1] - anchor[i, 1]) ** 2 + (q[i, 2] - anchor[i, 2]) ** 2)
-        outside_m = radius_m[i] - moved  # no model point outside the candidates is closer than this
-        best, arg = math.inf, n_model
-        for k in range(idx.shape[1]):
-            m = idx[i, k]
-            if m >= n_model:
-                break
-            d = math.sqrt((model_points[m, 0] - q[i, 0]) ** 2 + (model_points[m, 1] - q[i, 1]) ** 2
-                          + (model_points[m, 2] - q[i, 2]) ** 2)
-            if d < best:
-                best, arg = d, m
-        if best < outside_m:
-            if best < max_d:
-                j[i] = arg
-        elif outside_m < max_d:
-            stale[i] = True
-    return j, stale
-
-
-@_jit
-def _gauss_newton_step(p: np.ndarray, j: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray,
-                       c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray, kernel_m: float,
-                       reach_m: float) -> tuple[bool, float, np.ndarray, np.ndarray, float]:
-    """One Gauss–Newton step of _icp on the correspondences j: (ok, s, R, t, step_m) after
-    T ← δ ∘ T with δ = −(H + εI)⁻¹ g over [rot, trans, log-scale] (ε = 10⁻⁶ · trace(H)/7, a
-    Levenberg-style guard), and step_m a bound on how far the step moved any point within reach_m
-    of the centre. ok is False (T unchanged) with fewer than 7 matched points or a singular H."""
-    H, g, matched = _normal_equations(p, j, model_points, model_normals, c, s, R, t, kernel_m)
-    if matched < 7:
-        return False, s, R, t, 0.0
-    A = H + 1e-6 * np.trace(H) / 7 * np.eye(7)
-    try:
-        delta = -np.linalg.solve(A, g)
-    except Exception:  # numba raises LinAlgError for a singular matrix
-        return False, s, R, t, 0.0
-    sd = math.exp(delta[6])
-    Rd = _rotvec_matrix(delta[:3])
-    R_new = Rd @ R
-    t_new = sd * (Rd @ t) + delta[3:6]
-    s_new = sd * s
-    step_m = (math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
-              + (math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2) + abs(delta[6])) * s_new * reach_m)
-    return True, s_new, R_new, t_new, step_m
-
-
-@_jit
-def _normal_equations(p: np.ndarray, j: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray,
-                      c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
-                      kernel_m: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """(H, g, matched) of one Gauss–Newton step of digital-twin Eq. 2 with Tukey IRLS weights:
-    H = Σ w_i J_iᵀ J_i, g = Σ w_i J_iᵀ r_i over the source points p_i whose nearest model point j_i
-    exists (pykdtree gives j_i = len(model) for none within its bound), with x_i = s·R·p_i + t,
-    r_i = n·(x_i − (b − c)) and the rows J_i of _jacobian; ``matched`` counts those points, weighted
-    or not. w_i = (1 − (r_i/kernel_m)²)² inside the kernel, 0 outside.
-
-    Compiled with numba: the same sums in numpy took about 40 % of a registration's CPU as a dozen
-    array passes of ~1000 rows each (per-call overhead, not arithmetic); one loop over the points
-    does them in a single pass (docs/BENCHMARKS.md, "Fine-tuning cost")."""
-    H = np.zeros((7, 7))
-    g = np.zeros(7)
-    J = np.empty(7)
-    n_model = model_points.shape[0]
-    matched = 0
-    for i in range(p.shape[0]):
-        m = j[i]
-        if m >= n_model:
-            continue
-        matched += 1
-        x0 = s * (R[0, 0] * p[i, 0] + R[0, 1] * p[i, 1] + R[0, 2] * p[i, 2]) + t[0]
-        x1 = s * (R[1, 0] * p[i, 0] + R[1, 1] * p[i, 1] + R[1, 2] * p[i, 2]) + t[1]
-        x2 = s * (R[2, 0] * p[i, 0] + R[2, 1] * p[i, 1] + R[2, 2] * p[i, 2]) + t[2]
-        n0, n1, n2 = model_normals[m, 0], model_normals[m, 1], model_normals[m, 2]
-        r = (n0 * (x0 - (model_points[m, 0] - c[0])) + n1 * (x1 - (model_points[m, 1] - c[1]))
-             + n2 * (x2 - (model_points[m, 2] - c[2])))
-        if abs(r) >= kernel_m:
-            continue
-        u = r / kernel_m
-        w = (1.0 - u * u) ** 2
-        J[0] = x1 * n2 - x2 * n1
-        J[1] = x2 * n0 - x0 * n2
-        J[2] = x0 * n1 - x1 * n0
-        J[3], J[4], J[5] = n0, n1, n2
-        J[6] = n0 * x0 + n1 * x1 + n2 * x2
-        for a in range(7):
-            wa = w * J[a]
-            g[a] += wa * r
-            for b in range(a, 7):
-                H[a, b] += wa * J[b]
-    for a in range(7):
-        for b in range(a):
-            H[a, b] = H[b, a]
-    return H, g, matched
-
-
-def _evaluate(src: np.ndarray, crop: _Crop, c: np.ndarray, T: Sim3, cfg: AlignmentConfig, min_corr_m: float) -> _Icp:
-    """Final inliers, RMSE, robust scale and the Hessian of Eq. 8–9 (unweighted, inliers only) at T."""
-    max_d = max(cfg.max_correspondence_m / 4, min_corr_m)
-    x, n, r = _matches(src, crop, c, T.scale, T.R, T.t, max_d)
-    inl = np.abs(r) < cfg.inlier_distance_m
-    fitness = float(inl.sum()) / len(src)
-    rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
-    mad = float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("inf")
-    J = _jacobian(x[inl], n[inl])
-    cen = x[inl].mean(axis=0) if inl.any() else np.zeros(3)
-    return _Icp(T, fitness, rmse, J.T @ J, int(inl.sum()), cen, mad)
-
-
-def _matches(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
-             max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Moved source points x = s·R·p + t (centred at c) whose nearest model point lies within
-    max_d, the model normals n there and the point-to-plane residuals r of digital-twin Eq. 2."""
-    p, n, b = _correspondences(src, crop, c, s, R, t, max_d)
-    x, r = _residuals(p, n, b, s, R, t)
-    return x, n, r
-
-
-def _correspondences(src: np.ndarray, crop: _Crop, c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
-                     max_d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(source points p, model normals n, model points b centred at c): the points whose moved
-    position s·R·p + t (centred at c) has its nearest model point b within max_d (one KD-tree query)."""
-    d, j = crop.tree.query(s * src @ R.T + t + c, distance_upper_bound=max_d)
-    ok = np.isfinite(d)
-    j = j[ok]
-    return src[ok], crop.normals[j], crop.points[j] - c
-
-
-def _residuals(p: np.ndarray, n: np.ndarray, b: np.ndarray, s: float, R: np.ndarray,
-               t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(x = s·R·p + t, r = n·(x − b)): moved points and their point-to-plane residuals (Eq. 2)."""
-    x = s * p @ R.T + t
-    return x, np.einsum("ij,ij->i", n, x - b)
-
-
-def _jacobian(x: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Rows [ (x × n)ᵀ, nᵀ, n·x ] over [rot, trans, log-scale]: Eq. 9's A_j (sign folded into the
-    step) extended by the scale column. Cross product written out (np.cross costs more than the
-    arithmetic at these sizes)."""
-    J = np.empty((len(x), 7))
-    J[:, 0] = x[:, 1] * n[:, 2] - x[:, 2] * n[:, 1]
-    J[:, 1] = x[:, 2] * n[:, 0] - x[:, 0] * n[:, 2]
-    J[:, 2] = x[:, 0] * n[:, 1] - x[:, 1] * n[:, 0]
-    J[:, 3:6] = n
-    J[:, 6] = np.einsum("ij,ij->i", n, x)
-    return J
-
-
-@_jit
-def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: exp([w]×) = I + sin θ K + (1 − cos θ) K², K = [w/θ]×, θ = |w|."""
-    theta = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
-    if theta < 1e-12:
-        return np.eye(3) + np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    u = w / theta
-    K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
-
-
-def _in_square(p_enu: np.ndarray, c_enu: np.ndarray, half_m: float) -> np.ndarray:
-    """(N,) bool: points within ``half_m`` of ``c_enu`` in east and in north (a crop square)."""
-    return np.all(np.abs(p_enu[:, :2] - c_enu[:2]) <= half_m, axis=1)
-
-
 def _skew(a: np.ndarray) -> np.ndarray:
     """[a]× with [a]× b = a × b."""
     return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0.0]])
@@ -1141,24 +564,6 @@ def _subsample(p: np.ndarray, n_max: int) -> np.ndarray:
     if len(p) <= n_max:
         return p
     return p[np.sort(np.random.default_rng(0).choice(len(p), n_max, replace=False))]
-
-
-def _voxel_global(p: np.ndarray, n: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean point and unit mean normal per voxel of the global grid (edges at multiples of voxel_m,
-    so a crop made of whole tiles voxelises every tile the same way); voxels whose normals cancel
-    (|mean| ≤ 0.5: both faces of a thin wall) are dropped. Sorted by voxel (deterministic order)."""
-    if len(p) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    v = np.floor(p / voxel_m).astype(np.int64)
-    v -= v.min(axis=0)
-    span = v.max(axis=0) + 1
-    key = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-    mean = lambda a: np.stack([np.bincount(inv, a[:, k], len(counts)) for k in range(3)], 1) / counts[:, None]  # noqa: E731
-    pts, nrm = mean(p), mean(n)
-    norm = np.linalg.norm(nrm, axis=1)
-    keep = norm > 0.5
-    return pts[keep], nrm[keep] / norm[keep, None]
 
 
 def _fpfh_guess(src: np.ndarray, crop: _Crop, c: np.ndarray, half_m: float, cfg: AlignmentConfig) -> Sim3 | None:
