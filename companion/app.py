@@ -21,7 +21,8 @@ import numpy as np
 
 from companion.config import AppConfig
 from companion.evaluate import FixErrors, GnssReference, fix_errors, gnss_ecef, stats, write_csv, write_geojson, write_report, write_tum
-from companion.pipeline import BootstrapCollector, FrameRecord, Localizer, PipelineInput, attitude_prior
+from companion.fusion.gnss_fit import BootstrapCollector
+from companion.pipeline import FrameRecord, Localizer, PipelineInput, attitude_prior
 from gis.align.fine import FineTuner, ScaleCheck
 from gis.align.journal import Journal, write_meta
 from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu

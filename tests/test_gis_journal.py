@@ -77,7 +77,7 @@ def test_the_worker_journals_its_registrations_and_a_replay_decides_as_the_fligh
     """Real registrations in the fine-tuning worker process, written by the journal as they are
     handed over; the replay of the files against the same model gives the same alignments, and with
     the truth beside them says how far each put the camera (prior 2.2 m off, fused < 0.6 of that)."""
-    from companion.pipeline import FineTuneWorker
+    from companion.fusion.registration import FineTuneWorker
 
     adopted = []
     config = AlignmentConfig()
