@@ -116,12 +116,12 @@ def load_sequence(path: str) -> Sequence:
 
 def start_frame(scenario: str, seed: int, fps: float | None, start_s: str, n_frames: int) -> int:
     """First frame of a run of n_frames: ``start_s`` seconds of flight, or 'turn': the start of
-    the pipeline benchmark's window (companion.bench.bench_window_s: 10 s before the first turn)."""
+    the pipeline benchmark's window (companion.bench_run.bench_window_s: 10 s before the first turn)."""
     from companion.sim import make_scenario
 
     sc = make_scenario(scenario, seed=seed, **({"fps": fps} if fps else {}))
     if start_s == "turn":
-        from companion.bench import bench_window_s
+        from companion.bench_run import bench_window_s
 
         t = bench_window_s(sc, n_frames)[0]
     else:
