@@ -9,17 +9,15 @@ import platform
 import numpy as np
 
 from companion.app import REPEATABLE_LAG_S
-from companion.run_log import RunLog, summarize
+from companion.bench_run import BenchRun
 from companion.config import AppConfig
+from companion.run_log import RunLog, summarize
 from gis.align.fine import enu_sim3
 from gis.align.rough import alignment_error_m
 from gis.geodesy import LocalFrame
 from gis.model import GisModel
 from gis.sim3 import compose, umeyama
 from gis.types import AlignmentSource
-
-from companion.bench_run import BenchRun
-
 
 #: TerraSLAM's published figures (seeds/000_*: abstract, Table 1, §7.2.1, §7.4.4, Table 4)
 PUBLISHED = {

@@ -8,10 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.evaluate import fix_errors
-
 from companion.bench_figures import PUBLISHED
 from companion.bench_run import BenchRun
+from companion.evaluate import fix_errors
 
 
 def _fmt(x, nd=3) -> str:
@@ -86,7 +85,8 @@ def markdown_summary(fig: dict) -> str:
          f"{PUBLISHED['dgps_error_m']['mean']} / {PUBLISHED['dgps_error_m']['p99']}"),
     ]
     lines = [f"# Benchmark: {fig['scenario']}" + (f" ({fig['receiver']} receiver before the GNSS loss)" if fig.get("receiver") else ""), "",
-             f"{fig['frames']} frames ({_fmt(fig['duration_s'], 1)} s of flight from t = {_fmt(fig.get('start_s'), 1)} s, GNSS lost at {_fmt(fig.get('gnss_loss_at_s'), 1)} s; {_fmt(fig.get('wall_s'), 1)} s wall) on "
+             f"{fig['frames']} frames ({_fmt(fig['duration_s'], 1)} s of flight from t = {_fmt(fig.get('start_s'), 1)} s, "
+             f"GNSS lost at {_fmt(fig.get('gnss_loss_at_s'), 1)} s; {_fmt(fig.get('wall_s'), 1)} s wall) on "
              f"{m['cpu']}, {m['cores']} cores, features on {m['torch_device']}.", "",
              "| figure | ours | TerraSLAM (paper) |", "|---|---|---|"]
     lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]

@@ -14,14 +14,12 @@ import numpy as np
 import psutil
 
 from companion.app import fly_sim, open_journal
-from companion.run_log import RunLog
 from companion.config import AppConfig
+from companion.run_log import RunLog
 from gis.align.journal import Journal, write_truth
 from gis.geodesy import LocalFrame
 from gis.model import GisModel
 from gis.types import Alignment
-
-
 
 
 class ResourceSampler:

@@ -16,12 +16,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from companion.run_log import RunLog
 from companion.bench_figures import REQUIRED_KEYS, figures, missing_keys
 from companion.bench_report import suite_table, write_bench
 from companion.bench_run import BenchRun, ResourceSampler, gnss_baseline_errors
 from companion.config import AppConfig
 from companion.pipeline import FrameRecord
+from companion.run_log import RunLog
 from companion.sim import make_scenario
 from gis.align.fine import enu_sim3
 from gis.globalizer import Globalizer

@@ -14,9 +14,29 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
-from gis.align.fine import (CHI2_999, LEVEL_NORMAL_Z, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SURFACE_RADIUS_M, SURFACE_STEP_M,
-                             SYS_OFFSET_FRACTION, WALL_RADIUS_M, FineTuner, _Basin, _Crop, _gauss_newton_step, _Icp, _jacobian,
-                             _measurement_cov, _nearest, _nearest_among, _normal_equations, _update, enu_sim3, nadir_scale_ratio)
+from gis.align.fine import (
+    CHI2_999,
+    LEVEL_NORMAL_Z,
+    SCALE_MISMATCH_REASON,
+    SPREAD_FRACTION,
+    SURFACE_RADIUS_M,
+    SURFACE_STEP_M,
+    SYS_OFFSET_FRACTION,
+    WALL_RADIUS_M,
+    FineTuner,
+    _Basin,
+    _Crop,
+    _gauss_newton_step,
+    _Icp,
+    _jacobian,
+    _measurement_cov,
+    _nearest,
+    _nearest_among,
+    _normal_equations,
+    _update,
+    enu_sim3,
+    nadir_scale_ratio,
+)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.globalizer import Globalizer

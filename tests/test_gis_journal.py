@@ -9,13 +9,21 @@ import pytest
 
 from gis.align.fine import FineTuner
 from gis.align.georef import GeorefCorrection
-from gis.align.journal import (Journal, RegistrationJob, read_journal, read_record, read_truth, write_meta, write_record,
-                               write_truth)
+from gis.align.journal import (
+    Journal,
+    RegistrationJob,
+    read_journal,
+    read_record,
+    read_truth,
+    write_meta,
+    write_record,
+    write_truth,
+)
 from gis.align.replay import format_rows, main, replay
 from gis.config import AlignmentConfig
-from gis.types import Alignment, AlignmentSource
 from gis.model import GisModel
 from gis.synthetic import box_city_model
+from gis.types import Alignment, AlignmentSource
 from tests.test_gis_align import ORIGIN, T_ECEF_SLAM, _distorted_cloud, _prior_about, _slam
 
 

@@ -8,8 +8,16 @@ from scipy.spatial.transform import Rotation
 from companion.pipeline import Localizer, PipelineInput, with_gravity
 from gis.globalizer import Globalizer
 from slam.ba import BAProblem, bundle_adjust
-from slam.geometry import (DOWN_SLAM, R_align_vectors, R_slam_cam_levelled, gravity_cam_from_roll_pitch, inv_T, make_T,
-                           project, tilt_rad)
+from slam.geometry import (
+    DOWN_SLAM,
+    R_align_vectors,
+    R_slam_cam_levelled,
+    gravity_cam_from_roll_pitch,
+    inv_T,
+    make_T,
+    project,
+    tilt_rad,
+)
 from slam.types import AttitudePrior, Frame, SlamPose, TrackingState
 
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])

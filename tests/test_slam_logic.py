@@ -10,8 +10,16 @@ from skimage import data
 
 from slam.ba import BAProblem, bundle_adjust
 from slam.features import make_orb_cpu
-from slam.geometry import (correct_pose_by_sim3, initialize_two_view, inv_T, make_T, project, ransac_sim3,
-                           sim3_matrix, sim3_scale)
+from slam.geometry import (
+    correct_pose_by_sim3,
+    initialize_two_view,
+    inv_T,
+    make_T,
+    project,
+    ransac_sim3,
+    sim3_matrix,
+    sim3_scale,
+)
 from slam.matching import hamming, match_bf
 from slam.place import PlaceIndex
 from slam.plm import in_reliable_region, plm_window, recursive_loop_closing, reliable_region

@@ -25,8 +25,16 @@ import time
 import numpy as np
 
 from companion.slam_bench.memory import memory_summary, render_lap, run_memory
-from companion.slam_bench.runs import (ablation_configs, local_window_ms, loop_ablation, percentile, prior_row, report,
-                                       run_sequence, time_features)
+from companion.slam_bench.runs import (
+    ablation_configs,
+    local_window_ms,
+    loop_ablation,
+    percentile,
+    prior_row,
+    report,
+    run_sequence,
+    time_features,
+)
 from companion.slam_bench.sequence import Sequence, load_sequence, render_sequence, save_sequence, start_frame
 from slam.config import SlamConfig
 

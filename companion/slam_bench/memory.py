@@ -15,7 +15,6 @@ from slam.mapping import MapMemory
 from slam.system import SlamSystem
 from slam.types import CameraModel, Frame, TrackingState
 
-
 MEM_CHUNK_FRAMES = 100  # frames per file of the rendered lap
 
 

@@ -291,7 +291,8 @@ def report(r: RunResult) -> str:
         f"(CPU ms mean {np.mean(r.local_ba_cpu_ms or [np.nan]):.0f}), "
         f"window mean {np.mean(r.ba_window or [np.nan]):.1f} kf; {len(r.local_mapping_ms)} keyframes",
         f"  loops closed {len(r.loops)}  loop-correction ms: {', '.join(f'{x:.0f}' for x in r.loop_ms) or '-'}",
-        f"  map points {r.n_points} (fusing joined {r.fused[0]} observations, merged {r.fused[1]} duplicates)  RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
+        f"  map points {r.n_points} (fusing joined {r.fused[0]} observations, merged {r.fused[1]} duplicates)  "
+        f"RSS MB: {', '.join(f'{x:.0f}' for x in r.rss_mb)}",
         f"  observations' reprojection error in the final map: median {percentile(r.reproj_px, 50):.2f} px, P90 {percentile(r.reproj_px, 90):.2f} px",
         f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (shared machine: wall times include contention)",
     ]
