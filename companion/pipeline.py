@@ -167,6 +167,120 @@ class Localizer:
         if initial_alignment is not None:
             self._accept(initial_alignment, "initial")
 
+    def settle(self, t_s: float) -> None:
+        """Repeatable offline runs (``repeatable_lag_s``): before the frame at flight time ``t_s``,
+        wait until local mapping has mapped every keyframe and applied its bundle adjustment (the
+        SLAM system, ``stepped``, hands a frame's keyframe to local mapping only here, so nothing
+        the frame reads from the map after tracking depends on the mapping thread's speed), and
+        adopt the fine-tuning results due by ``t_s`` (submitted repeatable_lag_s or more before;
+        waiting for them). What each frame sees then depends on flight time alone, not on this
+        machine's speed, so the run repeats to the bit. It is optimistic about local mapping
+        (live, a keyframe's map arrives some frames later). Offline loops call it before each
+        frame, outside the frame's timing, and with ``math.inf`` at the end. Nothing to do live."""
+        if not self.repeatable:
+            return
+        if not self.slam.wait_mapping():
+            log.warning("repeatable run: local mapping still busy after 60 s; going on")
+        if self.worker is not None:
+            self.worker.release(t_s)
+
+    def process(self, item: PipelineInput) -> FrameRecord:
+        self._leave_survey_if_far(item.frame.t_s, item.gnss, item.gnss_trusted)
+        pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
+        self._last_pose = pose
+        with self._lock:
+            alignment = self.alignment
+        if alignment is not None and (alignment.map_id, alignment.reset_counter) != (pose.map_id, pose.reset_counter):
+            # SLAM map reset or loop-corrected: the alignment no longer applies (the Globalizer
+            # refuses fixes for another map by itself).
+            self._drop_alignment(pose.t_s, "SLAM map changed: alignment dropped")
+            alignment = None
+        lm = self.slam.tracked_local_map() if pose.state.has_pose else None
+        if alignment is not None:
+            alignment = self._follow_map(pose, alignment, lm, self._lm_prev)
+        self._lm_prev = lm
+        if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
+            v = item.gnss.vel_ned_mps
+            speed = float(np.hypot(v[0], v[1])) if v is not None else None
+            # the receiver's own position gives the local level frame (metres away: same axes)
+            if self.speed_check.update(pose.t_s, pose.T_slam_cam[:3, 3], alignment.T_ecef_slam,
+                                       R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
+                # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
+                self._withhold(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
+                                         f"{self.speed_check.last_ratio:.2f})")
+                alignment = None
+                self.bootstrap.clear()
+                self.speed_check.reset()
+        if pose.state.has_pose:
+            pair = self.bootstrap.make_pair(pose, item.gnss, item.prior)
+            if pair is not None:
+                usable = True
+                if alignment is not None:
+                    nu_ecef = pair.p_ecef - alignment.T_ecef_slam.apply(pair.p_slam[None])[0]
+                    with self._lock:
+                        if self.globalizer.unanchored and not self.gnss_check.inconsistent:
+                            # our track jumped (_after_jump): no reference to judge GNSS by until
+                            # a new alignment; the check starts again from the first pair after it
+                            self.gnss_check.reset()
+                        else:
+                            usable = self.gnss_check.update(pair.t_s, (pair.R_ecef_enu.T @ nu_ecef)[:2])
+                if usable and item.gnss_trusted:
+                    self.bootstrap.append(pair)
+                    self.baro.learn(pair, item.prior)
+            self._frames_since_boot += 1
+            if (item.gnss_trusted and self.bootstrap.ready()
+                    and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
+                self._frames_since_boot = 0
+                boot = self.bootstrap.solve()
+                if boot is not None:
+                    self._gnss_fit = boot
+                    self._gnss_fits.append(boot)
+                c = pose.T_slam_cam[:3, 3]
+                # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
+                # (the older alignment has drifted away from the current pose meanwhile), or where
+                # the SLAM track jumped by more than 3× that one's σ since it was adopted (its σ no
+                # longer holds: Globalizer.unanchored).
+                if boot is not None and (alignment is None or alignment.source is AlignmentSource.GNSS
+                                         or self.globalizer.unanchored
+                                         or self._sigma_here_m(boot, c) <= self._sigma_here_m(alignment, c)):
+                    self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
+                    alignment = boot
+            self._frames_since_tune += 1
+            every = self.every if item.gnss_trusted else self.every_denied
+            if (alignment is not None and self.worker is not None and not self.worker.busy.is_set()
+                    and self._frames_since_tune >= every):
+                snapshot = self.slam.map_points()
+                points, ids = snapshot.points_slam, snapshot.point_ids
+                keep = np.ones(len(ids), bool)
+                if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
+                    keep &= snapshot.parallax_deg >= self.min_parallax_deg
+                if self.recent_keyframes > 0 and snapshot.last_seen_kf_age is not None:
+                    keep &= snapshot.last_seen_kf_age < self.recent_keyframes
+                points, ids = points[keep], ids[keep]
+                fit = self._fresh_gnss_fit(pose) if item.gnss_trusted else None
+                prior = self._registration_prior(alignment, pose, fit)
+                h_cam = self.baro.camera_h_ell_m(item.prior)
+                h_sigma = None if h_cam is None else self.baro.camera_h_sigma_m()
+                if len(points) >= self.min_points and self.worker.submit(
+                        points, prior, pose.T_slam_cam[:3, 3].copy(), pose.t_s, h_cam, h_sigma):
+                    self._frames_since_tune = 0
+                    self._georef_job = (pose.t_s, pose.T_slam_cam[:3, 3].copy(), fit) if fit is not None else None
+                    crop = self._tuner.in_crop(points, prior.T_ecef_slam, pose.T_slam_cam[:3, 3])
+                    order = np.argsort(ids[crop], kind="stable")
+                    self._submitted = Cloud(prior, ids[crop][order], points[crop][order], t_s=pose.t_s)
+                else:  # too few well-triangulated points: retry soon, not every frame (a
+                    # snapshot of a big map costs tens of ms on this, the tracking, thread)
+                    self._frames_since_tune = every - RETRY_FRAMES
+            if alignment is not None:
+                self._check_scale(pose, alignment, item.prior)
+        self._settle_speed_check(pose.t_s)
+        self.globalizer.hold_jumps(pose.t_s, not item.gnss_trusted)
+        fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
+        self._after_jump(pose.t_s)
+        fix = self.denial_floor.apply(item.gnss_trusted, pose, alignment, fix)
+        fix = self._walk_floor(item.gnss_trusted, pose, fix)
+        return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
+
     def _follow_map(self, pose: SlamPose, alignment: Alignment, lm, lm_prev) -> Alignment:
         """Carry a registration along when local mapping moves its points (module doc, "Alignments
         follow their points"). A registration keeps the SLAM points it was computed on (Cloud:
@@ -395,120 +509,6 @@ class Localizer:
         if h is not None and len(pts) >= NADIR_MIN_POINTS and self.worker.check_scale(
                 pts, alignment, pose.T_slam_cam[:3, 3].copy(), h, pose.t_s):
             self._scale_check_t_s = pose.t_s
-
-    def settle(self, t_s: float) -> None:
-        """Repeatable offline runs (``repeatable_lag_s``): before the frame at flight time ``t_s``,
-        wait until local mapping has mapped every keyframe and applied its bundle adjustment (the
-        SLAM system, ``stepped``, hands a frame's keyframe to local mapping only here, so nothing
-        the frame reads from the map after tracking depends on the mapping thread's speed), and
-        adopt the fine-tuning results due by ``t_s`` (submitted repeatable_lag_s or more before;
-        waiting for them). What each frame sees then depends on flight time alone, not on this
-        machine's speed, so the run repeats to the bit. It is optimistic about local mapping
-        (live, a keyframe's map arrives some frames later). Offline loops call it before each
-        frame, outside the frame's timing, and with ``math.inf`` at the end. Nothing to do live."""
-        if not self.repeatable:
-            return
-        if not self.slam.wait_mapping():
-            log.warning("repeatable run: local mapping still busy after 60 s; going on")
-        if self.worker is not None:
-            self.worker.release(t_s)
-
-    def process(self, item: PipelineInput) -> FrameRecord:
-        self._leave_survey_if_far(item.frame.t_s, item.gnss, item.gnss_trusted)
-        pose = self.slam.track(item.frame, with_gravity(item.prior, self.globalizer.T_cam_body[:3, :3]))
-        self._last_pose = pose
-        with self._lock:
-            alignment = self.alignment
-        if alignment is not None and (alignment.map_id, alignment.reset_counter) != (pose.map_id, pose.reset_counter):
-            # SLAM map reset or loop-corrected: the alignment no longer applies (the Globalizer
-            # refuses fixes for another map by itself).
-            self._drop_alignment(pose.t_s, "SLAM map changed: alignment dropped")
-            alignment = None
-        lm = self.slam.tracked_local_map() if pose.state.has_pose else None
-        if alignment is not None:
-            alignment = self._follow_map(pose, alignment, lm, self._lm_prev)
-        self._lm_prev = lm
-        if pose.state.has_pose and alignment is not None and item.gnss is not None and item.gnss.fix_type >= GpsFixType.FIX_3D:
-            v = item.gnss.vel_ned_mps
-            speed = float(np.hypot(v[0], v[1])) if v is not None else None
-            # the receiver's own position gives the local level frame (metres away: same axes)
-            if self.speed_check.update(pose.t_s, pose.T_slam_cam[:3, 3], alignment.T_ecef_slam,
-                                       R_ecef_enu(item.gnss.lat_deg, item.gnss.lon_deg), speed):
-                # Our map, not GNSS, is what broke: withhold fixes, refit from fresh GNSS pairs only.
-                self._withhold(pose.t_s, f"SLAM scale inconsistent with GNSS ground speed (ratio "
-                                         f"{self.speed_check.last_ratio:.2f})")
-                alignment = None
-                self.bootstrap.clear()
-                self.speed_check.reset()
-        if pose.state.has_pose:
-            pair = self.bootstrap.make_pair(pose, item.gnss, item.prior)
-            if pair is not None:
-                usable = True
-                if alignment is not None:
-                    nu_ecef = pair.p_ecef - alignment.T_ecef_slam.apply(pair.p_slam[None])[0]
-                    with self._lock:
-                        if self.globalizer.unanchored and not self.gnss_check.inconsistent:
-                            # our track jumped (_after_jump): no reference to judge GNSS by until
-                            # a new alignment; the check starts again from the first pair after it
-                            self.gnss_check.reset()
-                        else:
-                            usable = self.gnss_check.update(pair.t_s, (pair.R_ecef_enu.T @ nu_ecef)[:2])
-                if usable and item.gnss_trusted:
-                    self.bootstrap.append(pair)
-                    self.baro.learn(pair, item.prior)
-            self._frames_since_boot += 1
-            if (item.gnss_trusted and self.bootstrap.ready()
-                    and (alignment is None or self._frames_since_boot >= self.rebootstrap_every)):
-                self._frames_since_boot = 0
-                boot = self.bootstrap.solve()
-                if boot is not None:
-                    self._gnss_fit = boot
-                    self._gnss_fits.append(boot)
-                c = pose.T_slam_cam[:3, 3]
-                # A fresh GNSS fit replaces a GIS one only where it is the better of the two here
-                # (the older alignment has drifted away from the current pose meanwhile), or where
-                # the SLAM track jumped by more than 3× that one's σ since it was adopted (its σ no
-                # longer holds: Globalizer.unanchored).
-                if boot is not None and (alignment is None or alignment.source is AlignmentSource.GNSS
-                                         or self.globalizer.unanchored
-                                         or self._sigma_here_m(boot, c) <= self._sigma_here_m(alignment, c)):
-                    self._accept(boot, f"{len(self.bootstrap.p_slam)} GNSS pairs")
-                    alignment = boot
-            self._frames_since_tune += 1
-            every = self.every if item.gnss_trusted else self.every_denied
-            if (alignment is not None and self.worker is not None and not self.worker.busy.is_set()
-                    and self._frames_since_tune >= every):
-                snapshot = self.slam.map_points()
-                points, ids = snapshot.points_slam, snapshot.point_ids
-                keep = np.ones(len(ids), bool)
-                if self.min_parallax_deg > 0 and snapshot.parallax_deg is not None:
-                    keep &= snapshot.parallax_deg >= self.min_parallax_deg
-                if self.recent_keyframes > 0 and snapshot.last_seen_kf_age is not None:
-                    keep &= snapshot.last_seen_kf_age < self.recent_keyframes
-                points, ids = points[keep], ids[keep]
-                fit = self._fresh_gnss_fit(pose) if item.gnss_trusted else None
-                prior = self._registration_prior(alignment, pose, fit)
-                h_cam = self.baro.camera_h_ell_m(item.prior)
-                h_sigma = None if h_cam is None else self.baro.camera_h_sigma_m()
-                if len(points) >= self.min_points and self.worker.submit(
-                        points, prior, pose.T_slam_cam[:3, 3].copy(), pose.t_s, h_cam, h_sigma):
-                    self._frames_since_tune = 0
-                    self._georef_job = (pose.t_s, pose.T_slam_cam[:3, 3].copy(), fit) if fit is not None else None
-                    crop = self._tuner.in_crop(points, prior.T_ecef_slam, pose.T_slam_cam[:3, 3])
-                    order = np.argsort(ids[crop], kind="stable")
-                    self._submitted = Cloud(prior, ids[crop][order], points[crop][order], t_s=pose.t_s)
-                else:  # too few well-triangulated points: retry soon, not every frame (a
-                    # snapshot of a big map costs tens of ms on this, the tracking, thread)
-                    self._frames_since_tune = every - RETRY_FRAMES
-            if alignment is not None:
-                self._check_scale(pose, alignment, item.prior)
-        self._settle_speed_check(pose.t_s)
-        self.globalizer.hold_jumps(pose.t_s, not item.gnss_trusted)
-        fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
-        self._after_jump(pose.t_s)
-        fix = self.denial_floor.apply(item.gnss_trusted, pose, alignment, fix)
-        fix = self._walk_floor(item.gnss_trusted, pose, fix)
-        return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
 
     def _after_jump(self, t_s: float) -> None:
         """The SLAM track has just jumped by more than 3× the alignment's σ (Globalizer.unanchored;
