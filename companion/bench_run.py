@@ -92,7 +92,7 @@ def bench_window_s(scenario, n_frames: int) -> tuple[float, float]:
     """(start, GNSS loss) flight times of a benchmark run of n_frames.
 
     The run starts 10 s before the flight's first turn (the GNSS geometry of a turn sharpens the
-    bootstrap's heading beyond the compass's, pipeline.BootstrapCollector) and GNSS is lost after
+    bootstrap's heading beyond the compass's, companion.fusion.gnss_fit.BootstrapCollector) and GNSS is lost after
     70 % of the run: SLAM is aligned through the turn while GNSS is good, then carries on alone.
     Both are clamped to the flight."""
     duration_s = n_frames / scenario.fps
