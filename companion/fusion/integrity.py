@@ -15,7 +15,7 @@ from gis.geodesy import R_ecef_enu, ecef_to_geodetic
 from gis.sim3 import Sim3
 from gis.types import Alignment
 
-WALK_WINDOW_S = 10.0     # GNSS fits this far apart bound an undetected walk-off (Localizer._walk_floor)
+WALK_WINDOW_S = 10.0     # GNSS fits this far apart bound an undetected walk-off (companion.fusion.sigma.walk_floor)
 
 
 def walk_from_m(fits: Iterable[Alignment], newest: Alignment, c_slam: np.ndarray,
