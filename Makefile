@@ -1,6 +1,7 @@
 # Two entry points for a fresh Debian machine (root, Python 3.11, no GPU):
 #   make demo   — set everything up, then run `terraslam demo`
-#   make test   — set everything up, then run the default test suite
+#   make test   — set everything up, then run the default test suite (with the import-layer contracts
+#                 and ruff, tests/test_code_checks.py)
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin

@@ -30,7 +30,8 @@ def bench(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from companion.bench import bench_one, bench_suite, markdown_summary, seeds_table, suite_table
+    from companion.bench import bench_one, bench_suite
+    from companion.bench_report import markdown_summary, seeds_table, suite_table
     from companion.config import ConfigError, load_config
     from companion.sim.scenario import SCENARIOS
 

@@ -165,10 +165,10 @@ def gis_fetch(
     cache_dir: Optional[Path] = _CACHE,
 ) -> None:
     """Obtain the models within a radius of a rough position (TerraSLAM §6) and cache them."""
+    from rich.console import Console
+
     from gis.model import GisFormatError
     from gis.providers import FetchError, fetch_model, providers_for
-
-    from rich.console import Console
 
     cfg = _gis_config(config)
     cache = _cache(config, cache_dir)

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from companion.calibration import CalibrationError, read_camera_model, write_calibration
 from companion.sim.autopilot_signals import R_ned_body_at_vehicle
 from companion.sim.types import AttitudeSample, SimStep, TruthPose
-from gis.geodesy import LocalFrame, R_NED_ENU, R_ecef_enu, geodetic_to_ecef
+from gis.geodesy import R_NED_ENU, LocalFrame, R_ecef_enu, geodetic_to_ecef
 from mavlink_bridge.types import GnssSample, GpsFixType
 from slam.types import CameraModel, Frame
 

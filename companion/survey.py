@@ -17,8 +17,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from companion.persistence import SURVEY_ALIGNMENT, alignment_json
 from companion.app import ATTITUDE_MAX_AGE_S
+from companion.persistence import SURVEY_ALIGNMENT, alignment_json
 from companion.pipeline import attitude_prior
 from gis.sim3 import Sim3
 from gis.types import Alignment, AlignmentSource

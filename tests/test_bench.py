@@ -16,12 +16,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from companion.app import RunLog
-from companion.bench import (
-    REQUIRED_KEYS, BenchRun, ResourceSampler, figures, gnss_baseline_errors, missing_keys, suite_table, write_bench,
-)
+from companion.bench_figures import REQUIRED_KEYS, figures, missing_keys
+from companion.bench_report import suite_table, write_bench
+from companion.bench_run import BenchRun, ResourceSampler, gnss_baseline_errors
 from companion.config import AppConfig
 from companion.pipeline import FrameRecord
+from companion.run_log import RunLog
 from companion.sim import make_scenario
 from gis.align.fine import enu_sim3
 from gis.globalizer import Globalizer
@@ -155,7 +155,7 @@ def test_cli_rejects_bad_arguments(tmp_path):
 
 
 def test_seeds_table_counts_runs_without_fixes_and_summarises_the_rest():
-    from companion.bench import seeds_table
+    from companion.bench_report import seeds_table
 
     def fig(name, mean, viol=0.0):
         return {"scenario": name, "after_takeover": {"global_error_m": {"mean": mean}, "integrity_violation_ratio": viol}}
@@ -174,7 +174,7 @@ def test_a_repeatable_run_repeats_to_the_bit(tmp_path):
     (free-running, the two runs of `nominal` seed 0 parted 9 s into the window and ended 0.3 m
     apart in mean error)."""
     pytest.importorskip("slam.system", reason="slam.system.SlamSystem has not landed")
-    from companion.bench import bench_scenario
+    from companion.bench_run import bench_scenario
 
     runs = [bench_scenario(AppConfig(), "nominal", 110, seed=0, work_dir=tmp_path / f"r{i}", receiver="dgps", repeatable=True)
             for i in range(2)]

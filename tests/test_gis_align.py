@@ -646,7 +646,7 @@ def test_the_worker_prefetches_the_next_crop_after_a_registration(city):
     has built one, and the third registration (its crop prefetched) equals an in-process one."""
     import time
 
-    from companion.pipeline import FineTuneWorker
+    from companion.fusion.registration import FineTuneWorker
 
     adopted = []
     worker = FineTuneWorker(FineTuner(city), lambda a, r, ms, icp: adopted.append((a, r)))
@@ -936,7 +936,7 @@ def test_the_worker_is_busy_until_its_result_is_adopted(city):
     the registration's alignment, not the one before it. The worker cleared busy first before."""
     import time
 
-    from companion.pipeline import FineTuneWorker
+    from companion.fusion.registration import FineTuneWorker
 
     adopted = []
 
@@ -965,7 +965,7 @@ def test_a_held_result_is_adopted_at_its_flight_time_on_the_callers_thread(city)
     import threading
     import time
 
-    from companion.pipeline import FineTuneWorker
+    from companion.fusion.registration import FineTuneWorker
 
     adopted = []
     worker = FineTuneWorker(FineTuner(city), lambda a, r, ms, icp: adopted.append((a, r, threading.current_thread())),
@@ -1016,7 +1016,8 @@ def test_a_registration_carried_along_in_the_frame_it_arrives_is_tested_against_
     against the previous pose placed with the registration as it stood at the previous frame's
     map). A move before that frame cannot be tested any more: the registration is widened by half
     the move (CARRY_SIGMA_FRACTION), right or wrong."""
-    from companion.pipeline import CARRY_SIGMA_FRACTION, Localizer, PipelineInput
+    from companion.fusion.follow import CARRY_SIGMA_FRACTION
+    from companion.pipeline import Localizer, PipelineInput
     from slam.types import Frame
 
     D = Sim3(1.01, Rotation.from_euler("z", 0.5, degrees=True).as_matrix(), np.array([0.25, -0.15, 0.05]))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from companion.pipeline import BootstrapCollector
+from companion.fusion.gnss_fit import BootstrapCollector
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
 from gis.geodesy import R_NED_ENU, LocalFrame
 from gis.globalizer import Globalizer

@@ -267,7 +267,8 @@ def test_the_localizer_corrects_a_model_that_is_metres_off_while_gnss_is_good(ci
     (an alignment event says so, within 0.5 m of it), the worker and the Globalizer take the
     correction, and after the loss the fixes from registrations on the corrected model stay within
     0.8 m of the truth and within 3σ."""
-    from companion.pipeline import BootstrapCollector, Localizer
+    from companion.fusion.gnss_fit import BootstrapCollector
+    from companion.pipeline import Localizer
     from gis.globalizer import Globalizer
 
     b = np.array([2.6, -1.8, 0.5])
@@ -296,7 +297,8 @@ def _journalled_flight(city, folder, loss_s: float, gnss_bias_enu_m=(0.0, 0.0, 0
     stays below the fits', so registrations stay current between fits) and a registration every
     5 s, journalled by the real worker. Returns (journal records, [(t_s, source) of each accepted
     alignment], after-loss fixes as _fly_circle)."""
-    from companion.pipeline import BootstrapCollector, Localizer
+    from companion.fusion.gnss_fit import BootstrapCollector
+    from companion.pipeline import Localizer
     from gis.align.journal import Journal, read_journal, write_meta
     from gis.globalizer import Globalizer
 
@@ -391,7 +393,8 @@ def test_while_gnss_is_trusted_a_slam_jump_hands_the_alignment_back_to_the_gnss_
     Before: the registration's smaller σ kept every fit out, fixes 3 m off claiming ~0.2 m once the
     term had decayed; the 8 m jump had GNSS taken for spoofed (`loop` seed 6, 2026-12-06: 5 m off
     claiming 1.2 m, then 9 m off, and the bridge took GNSS for spoofed twice)."""
-    from companion.pipeline import BootstrapCollector, Localizer
+    from companion.fusion.gnss_fit import BootstrapCollector
+    from companion.pipeline import Localizer
     from gis.globalizer import Globalizer
     from gis.types import AlignmentSource
 

@@ -9,13 +9,21 @@ import pytest
 
 from gis.align.fine import FineTuner
 from gis.align.georef import GeorefCorrection
-from gis.align.journal import (Journal, RegistrationJob, read_journal, read_record, read_truth, write_meta, write_record,
-                               write_truth)
+from gis.align.journal import (
+    Journal,
+    RegistrationJob,
+    read_journal,
+    read_record,
+    read_truth,
+    write_meta,
+    write_record,
+    write_truth,
+)
 from gis.align.replay import format_rows, main, replay
 from gis.config import AlignmentConfig
-from gis.types import Alignment, AlignmentSource
 from gis.model import GisModel
 from gis.synthetic import box_city_model
+from gis.types import Alignment, AlignmentSource
 from tests.test_gis_align import ORIGIN, T_ECEF_SLAM, _distorted_cloud, _prior_about, _slam
 
 
@@ -77,7 +85,7 @@ def test_the_worker_journals_its_registrations_and_a_replay_decides_as_the_fligh
     """Real registrations in the fine-tuning worker process, written by the journal as they are
     handed over; the replay of the files against the same model gives the same alignments, and with
     the truth beside them says how far each put the camera (prior 2.2 m off, fused < 0.6 of that)."""
-    from companion.pipeline import FineTuneWorker
+    from companion.fusion.registration import FineTuneWorker
 
     adopted = []
     config = AlignmentConfig()

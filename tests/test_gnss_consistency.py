@@ -1,4 +1,4 @@
-"""GNSS vs visual odometry (companion.pipeline.GnssConsistency): a spoofer that jumps or walks away
+"""GNSS vs visual odometry (companion.fusion.integrity.GnssConsistency): a spoofer that jumps or walks away
 from where vision says we are is flagged, clean receiver noise (the simulator's Gauss–Markov model)
 is not, and the flag reaches the GNSS monitor as an UNTRUSTED verdict."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.pipeline import GnssConsistency, walk_from_m
+from companion.fusion.integrity import GnssConsistency, walk_from_m
 from companion.sim.gnss import _gauss_markov
 from gis.align.fine import enu_sim3
 from gis.geodesy import LocalFrame
@@ -86,7 +86,7 @@ def _speed_check_run(scale_after: float, drift_mps: float = 0.0, speed_mps: floa
     drift_mps (a walk-off). realign_every_s: a new alignment, 3 m east of the last, that often (GNSS
     re-bootstraps moving the globalised track by that much). jumps_m: {t: metres}: local mapping
     moves the map, and the tracked camera with it, that far east at t (it stays moved)."""
-    from companion.pipeline import SlamSpeedCheck
+    from companion.fusion.integrity import SlamSpeedCheck
     from gis.align.fine import enu_sim3
     from gis.geodesy import LocalFrame
     from gis.sim3 import Sim3
@@ -134,7 +134,8 @@ def test_a_speed_mismatch_open_at_the_gnss_loss_waits_for_the_next_scale_test_no
     speed, so fixes are withheld, until the first GIS registration after the loss (scale from the
     model) settles it; then the fixes come back, on the truth. Before, the open mismatch withheld
     every fix for the rest of the denial (`loop` seed 5: none in 75 s)."""
-    from companion.pipeline import BootstrapCollector, Localizer
+    from companion.fusion.gnss_fit import BootstrapCollector
+    from companion.pipeline import Localizer
     from gis.align.fine import FineTuner
     from gis.globalizer import Globalizer
     from gis.synthetic import box_city_model, slam_like_cloud

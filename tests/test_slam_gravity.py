@@ -8,8 +8,16 @@ from scipy.spatial.transform import Rotation
 from companion.pipeline import Localizer, PipelineInput, with_gravity
 from gis.globalizer import Globalizer
 from slam.ba import BAProblem, bundle_adjust
-from slam.geometry import (DOWN_SLAM, R_align_vectors, R_slam_cam_levelled, gravity_cam_from_roll_pitch, inv_T, make_T,
-                           project, tilt_rad)
+from slam.geometry import (
+    DOWN_SLAM,
+    R_align_vectors,
+    R_slam_cam_levelled,
+    gravity_cam_from_roll_pitch,
+    inv_T,
+    make_T,
+    project,
+    tilt_rad,
+)
 from slam.types import AttitudePrior, Frame, SlamPose, TrackingState
 
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
@@ -19,7 +27,7 @@ R_BODY_CAM = Rotation.from_euler("y", -40, degrees=True).as_matrix() @ np.array(
 
 def test_gravity_cam_matches_the_ned_attitude_convention():
     """g_cam = (R_ned_body·R_body_cam)ᵀ·(0,0,1) with R_ned_body from ZYX Euler angles, as
-    companion.pipeline.BootstrapCollector builds the attitude; yaw does not matter."""
+    companion.fusion.gnss_fit.BootstrapCollector builds the attitude; yaw does not matter."""
     for roll, pitch, yaw in [(0.0, 0.0, 0.0), (0.3, -0.2, 2.0), (-0.1, 0.4, -1.0)]:
         R_ned_body = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
         expected = (R_ned_body @ R_BODY_CAM).T @ np.array([0.0, 0.0, 1.0])

@@ -10,8 +10,16 @@ from skimage import data
 
 from slam.ba import BAProblem, bundle_adjust
 from slam.features import make_orb_cpu
-from slam.geometry import (correct_pose_by_sim3, initialize_two_view, inv_T, make_T, project, ransac_sim3,
-                           sim3_matrix, sim3_scale)
+from slam.geometry import (
+    correct_pose_by_sim3,
+    initialize_two_view,
+    inv_T,
+    make_T,
+    project,
+    ransac_sim3,
+    sim3_matrix,
+    sim3_scale,
+)
 from slam.matching import hamming, match_bf
 from slam.place import PlaceIndex
 from slam.plm import in_reliable_region, plm_window, recursive_loop_closing, reliable_region
@@ -484,10 +492,10 @@ def test_triangulation_partners_skip_the_short_baselines_of_turn_keyframes():
     assert triangulation_partners(m, kf, ids, 0.0) == ids[-3:-1]  # the predecessors already overlap
 
 
-# --- sequences saved for replay elsewhere (slam.bench --export / --sequence) --------------------
+# --- sequences saved for replay elsewhere (companion.slam_bench --export / --sequence) --------------------
 
 def _textured_sequence(n: int = 6):
-    from slam.bench import Sequence
+    from companion.slam_bench.sequence import Sequence
     from slam.types import AttitudePrior
 
     base = cv2.resize(data.camera(), (320, 240))
@@ -503,7 +511,7 @@ def _textured_sequence(n: int = 6):
 
 
 def test_a_saved_sequence_replays_the_same_frames_truth_and_priors(tmp_path):
-    from slam.bench import load_sequence, save_sequence
+    from companion.slam_bench.sequence import load_sequence, save_sequence
 
     seq = _textured_sequence()
     save_sequence(seq, str(tmp_path / "raw.npz"))
@@ -526,7 +534,7 @@ def test_a_saved_sequence_replays_the_same_frames_truth_and_priors(tmp_path):
 
 
 def test_a_sequence_file_whose_frames_do_not_match_its_poses_is_refused(tmp_path):
-    from slam.bench import load_sequence, save_sequence
+    from companion.slam_bench.sequence import load_sequence, save_sequence
 
     seq = _textured_sequence()
     save_sequence(seq, str(tmp_path / "s.npz"))
@@ -539,7 +547,8 @@ def test_a_sequence_file_whose_frames_do_not_match_its_poses_is_refused(tmp_path
 
 def test_feature_timing_runs_each_extractor_on_a_saved_sequence(tmp_path, capsys):
     pytest.importorskip("torch")
-    from slam.bench import main, save_sequence
+    from companion.slam_bench.cli import main
+    from companion.slam_bench.sequence import save_sequence
 
     save_sequence(_textured_sequence(), str(tmp_path / "s.npz"))
     main(["--sequence", str(tmp_path / "s.npz"), "--features"])

@@ -1,7 +1,7 @@
 """Memory bounds of slam/ (issue 4): the map, place index, loop anchors and queues stay within
 their caps over a long constructed flight, loop closing still finds an anchored place, and a
 SlamSystem closed leaves no worker process or thread behind. RSS figures belong to
-``python -m slam.bench --memory`` (docs/BENCHMARKS.md), not to these tests."""
+``python -m companion.slam_bench --memory`` (docs/BENCHMARKS.md), not to these tests."""
 from __future__ import annotations
 
 import threading

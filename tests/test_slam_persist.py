@@ -197,7 +197,7 @@ def turn_map(tmp_path_factory) -> TurnMap:
     waited for after each frame): its newest keyframes look away from where it started."""
     import cv2
 
-    from companion.bench import first_turn_s
+    from companion.bench_run import first_turn_s
     from companion.sim import make_scenario
 
     sc = make_scenario("nominal", fps=FPS)

@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from slam.bench import render_sequence, run_sequence
+from companion.slam_bench.runs import run_sequence
+from companion.slam_bench.sequence import render_sequence
 from slam.config import SlamConfig
 from slam.geometry import inv_T, project
 from slam.system import SlamSystem
@@ -44,7 +45,7 @@ def test_initializes_and_tracks_nominal_against_truth(cpu_run):
     rmse_m, length_m, pct = r.ate()
     assert length_m > 10
     # camera ~80 m up: 1 m RMSE is ~2 px of pose jitter; the % target is measured on long flights
-    # by slam.bench (a 15 m path after initialization cannot show 0.5 %)
+    # by companion.slam_bench (a 15 m path after initialization cannot show 0.5 %)
     assert rmse_m < 1.0, f"ATE {rmse_m:.2f} m = {pct:.2f} % of {length_m:.1f} m"
     assert len(r.local_mapping_ms) >= 4 and r.n_points > 300
 
@@ -167,7 +168,7 @@ def test_patch_alignment_makes_each_points_observations_agree(nominal, cpu_run):
 def test_loop_closure_undoes_injected_drift(nominal, mode):
     """A drifted, disconnected revisit of earlier keyframes (copies with new points moved by a
     known Sim(3)) is found by place recognition, verified by Sim(3) RANSAC and corrected."""
-    from slam.bench import inject_drifted_revisit
+    from companion.slam_bench.runs import inject_drifted_revisit
     from slam.geometry import camera_center, sim3_matrix
 
     cfg = SlamConfig(loop_closing=mode, loop_min_gap_keyframes=5, local_window=4)
@@ -243,7 +244,7 @@ def test_attitude_prior_gives_a_gravity_aligned_map(prior_run, cpu_run):
 
 def test_attitude_prior_agrees_with_the_vision_only_path(prior_run, cpu_run):
     """Same tracking and accuracy as without the prior on this short flight (the prior must not
-    fight the images); the longer before/after comparison is slam.bench --attitude-prior both."""
+    fight the images); the longer before/after comparison is companion.slam_bench --attitude-prior both."""
     assert prior_run.ratio_after_init >= 0.97 and prior_run.reset_counter == 0
     rmse_on, rmse_off = prior_run.ate()[0], cpu_run.ate()[0]
     assert rmse_on < 1.0 and abs(rmse_on - rmse_off) < 0.3, (rmse_on, rmse_off)

@@ -7,10 +7,20 @@ import shutil
 import numpy as np
 import pytest
 
-from slam.vocab import (VOCAB_PATH, Vocabulary, VocabularyError, content_sha256, k_majority, l1_score,
-                        load_vocabulary, save_vocabulary, shipped_vocabulary, train_vocabulary)
+from slam.vocab import (
+    VOCAB_PATH,
+    Vocabulary,
+    VocabularyError,
+    content_sha256,
+    k_majority,
+    l1_score,
+    load_vocabulary,
+    save_vocabulary,
+    shipped_vocabulary,
+    train_vocabulary,
+)
 
-# sha256 of the shipped vocabulary's content (printed by `python -m slam.vocab_train`): a retrained
+# sha256 of the shipped vocabulary's content (printed by `python -m companion.slam_bench.vocab_train`): a retrained
 # file must be committed together with this line.
 SHIPPED_SHA256 = "96e68cf4c0b6215ca4be02d32821fdf7390756953fed7efea5705524a6cc9833"
 

@@ -266,7 +266,7 @@ def _place_buildings(spec: WorldSpec, terrain: Terrain, grid_angle: float, n_sid
             continue
         placed.append((c, r))
         Rb = R @ _rot2(yaw)
-        to_enu = lambda p: p @ Rb.T + R @ c  # noqa: E731
+        to_enu = lambda p, Rb=Rb, c=c: p @ Rb.T + R @ c  # noqa: E731
         outline = to_enu(fp)
         gz = float(terrain.height(outline[:, 0], outline[:, 1]).min())
         u = rng.random()

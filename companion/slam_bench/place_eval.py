@@ -1,7 +1,7 @@
 """Timing and recognition figures of slam.place (printed, not asserted: see docs/BENCHMARKS.md).
 
-    python -m slam.place_eval bench     # add / query time against 100, 600, 2000 entries
-    python -m slam.place_eval recall    # top-1 precision / recall on the `loop` flight's revisits
+    python -m companion.slam_bench.place_eval bench     # add / query time against 100, 600, 2000 entries
+    python -m companion.slam_bench.place_eval recall    # top-1 precision / recall on the `loop` flight's revisits
 
 ``--index FILE`` evaluates the PlaceIndex class of another place.py (e.g. an older version from
 ``git show REV:slam/place.py``) on the same data, for before/after figures.
@@ -43,7 +43,7 @@ def photo_views(n: int, n_features: int = 1000, seed: int = 1) -> list[np.ndarra
     import cv2
     import skimage.data
 
-    from slam.vocab_train import H_PX, W_PX, random_view
+    from companion.slam_bench.vocab_train import H_PX, W_PX, random_view
 
     names = ("astronaut", "camera", "coffee", "rocket", "coins", "moon", "text", "brick", "grass", "chelsea")
     rng = np.random.default_rng(seed)

@@ -1,8 +1,8 @@
 """Train the place-recognition vocabulary shipped as slam/data/orb_vocab.npz (a development tool:
 nothing here runs on the vehicle).
 
-    python -m slam.vocab_train                         # defaults below, writes slam/data/orb_vocab.npz
-    python -m slam.vocab_train --cache /tmp/vocab_desc.npz --k 16 --levels 4
+    python -m companion.slam_bench.vocab_train                         # defaults below, writes slam/data/orb_vocab.npz
+    python -m companion.slam_bench.vocab_train --cache /tmp/vocab_desc.npz --k 16 --levels 4
 
 Training images: frames of our simulator (``companion.sim``) on several scenarios over worlds of
 seeds 1-2 (the tests and the recognition check fly seed 0), and scikit-image photos seen through
@@ -96,7 +96,7 @@ def main(argv=None) -> None:
         if a.cache is not None:
             np.savez(a.cache, n=len(images), n_sim=n_sim, **{f"i{j}": d for j, d in enumerate(images)})
     t1 = time.perf_counter()
-    meta = dict(command="python -m slam.vocab_train " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+    meta = dict(command="python -m companion.slam_bench.vocab_train " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
                 sim_scenarios=list(SIM_SCENARIOS), sim_seeds=list(SIM_SEEDS), sim_frames_per_flight=a.sim_frames,
                 sim_images=n_sim, photos=list(PHOTOS), photo_views=a.photo_views, features=a.features)
     vocab = train_vocabulary(images, a.k, a.levels, a.seed, meta)
