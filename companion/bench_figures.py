@@ -19,7 +19,7 @@ from gis.model import GisModel
 from gis.sim3 import compose, umeyama
 from gis.types import AlignmentSource
 
-#: TerraSLAM's published figures (seeds/000_*: abstract, Table 1, §7.2.1, §7.4.4, Table 4)
+#: TerraSLAM's published figures ("TerraSLAM: Towards GPS-Denied Localization", MobiSys '25: abstract, Table 1, §7.2.1, §7.4.4, Table 4)
 PUBLISHED = {
     "global_error_m": {"mean": 0.21, "p99": 0.67},            # Table 1 / §7.2.1
     "frame_latency_ms": {"mean": 16.7, "p99": 31.9},          # Table 1 (§7.2.2: 16.7 / 31.8)

@@ -1,4 +1,4 @@
-"""The real-time localisation pipeline: frames in, global fixes out (DESIGN.md data flow).
+"""The real-time localisation pipeline: frames in, global fixes out (README.md, data flow).
 
 Hot path, one thread, top to bottom per frame::
 

@@ -1,6 +1,6 @@
 """Geodesy: WGS-84 geodetic ↔ ECEF ↔ local ENU/NED, ellipsoidal ↔ MSL (EGM96) heights.
 
-Conventions (DESIGN.md):
+Conventions (CONTRIBUTING.md, Naming):
 - geodetic: WGS-84, EPSG:4979, (lat_deg, lon_deg, h_ellipsoid_m).
 - ecef: EPSG:4978, metres.
 - enu / ned: local level frames at a geodetic origin (lat0_deg, lon0_deg, h0_ellipsoid_m);

@@ -1,4 +1,4 @@
-"""GlobalFix → the MAVLink message each autopilot actually fuses (AUTOPILOT.md).
+"""GlobalFix → the MAVLink message each autopilot actually fuses (docs/AUTOPILOTS.md).
 
 One function per message; each returns a pymavlink message (encoded by the caller's link).
 - ArduPilot: GPS_INPUT (GPSx_TYPE=14), or ODOMETRY (LOCAL_FRD/BODY_FRD) / VISION_POSITION_ESTIMATE
@@ -20,7 +20,7 @@ from mavlink_bridge.config import MavlinkConfig
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-#: Which outputs each autopilot fuses (AUTOPILOT.md).
+#: Which outputs each autopilot fuses (docs/AUTOPILOTS.md).
 SUPPORTED_OUTPUTS = {
     "ardupilot": ("gps_input", "odometry", "vision_position_estimate"),
     "px4": ("odometry", "vision_position_estimate", "global_position_sensor", "hil_gps"),

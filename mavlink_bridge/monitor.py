@@ -7,7 +7,7 @@ Pieces, each with one job:
 - ``SpoofDetector``: persistent GNSS/vision disagreement beyond their combined uncertainty
   (beyond the papers: spoofed receivers report perfect fixes, only an independent source shows it).
 - ``JammingDetector``: fix-type flapping between a 3D fix and no fix (ArduPilot SITL under jamming
-  flips 1↔6, AUTOPILOT.md).
+  flips 1↔6, docs/AUTOPILOTS.md).
 - ``GnssMonitor``: keeps the latest of each and produces the verdict.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from mavlink_bridge.types import GnssQuality, GnssSample, GnssStatus, GpsFixType
 
 log = logging.getLogger(__name__)
 
-#: ArduPilot EKF_STATUS_REPORT flag bit 15 (GPS_GLITCHING), see AUTOPILOT.md.
+#: ArduPilot EKF_STATUS_REPORT flag bit 15 (GPS_GLITCHING), see docs/AUTOPILOTS.md.
 EKF_STATUS_GPS_GLITCH = 32768
 #: PX4 ESTIMATOR_STATUS flag ESTIMATOR_GPS_GLITCH (MAVLink common ESTIMATOR_STATUS_FLAGS).
 ESTIMATOR_GPS_GLITCH = 1024

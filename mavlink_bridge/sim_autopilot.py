@@ -1,5 +1,5 @@
 """Simulated autopilot: a real pymavlink endpoint on UDP loopback with PX4 and ArduPilot
-personalities that accept, reject and fuse our messages the way AUTOPILOT.md says the real ones do.
+personalities that accept, reject and fuse our messages the way docs/AUTOPILOTS.md says the real ones do.
 
 It streams HEARTBEAT, SYSTEM_TIME, ATTITUDE, ALTITUDE, GPS_RAW_INT (from ``feed_gnss``), GPS2_RAW
 (ArduPilot's MAVLink GPS instance), EKF_STATUS_REPORT / ESTIMATOR_STATUS, GLOBAL_POSITION_INT and
@@ -8,7 +8,7 @@ and PARAM_SET. Its position estimate is deliberately simple: it *snaps* to which
 rules select (EKF3 and EKF2 both snap on a source change), so tests can assert which source the
 autopilot uses and that it follows our fixes. It is not a filter model of EKF2/EKF3.
 
-Personality rules (AUTOPILOT.md):
+Personality rules (docs/AUTOPILOTS.md):
 - px4: no GPS_INPUT handler (ignored); ODOMETRY needs frame LOCAL_NED/LOCAL_FRD and estimator
   VISION/VIO; EV samples > 200 ms apart are dropped; EV/AGP used when GNSS is not fused;
   GLOBAL_POSITION_SENSOR needs id = EKF2_AGP0_ID and is rejected while good GNSS disagrees;

@@ -16,6 +16,6 @@ Layout (one job per module):
   plm.py        Eq. 4 reliable region, PLM window, Algorithm 1 control flow
   place.py      place recognition: bag of binary words, inverted file, L1 score (nothing downloaded)
   vocab.py      the ORB vocabulary (tree, tf-idf), its file slam/data/orb_vocab.npz; vocab_train.py trains it
-  place_eval.py `python -m slam.place_eval bench|recall`: place-recognition timings and recognition figures
-  bench.py      `python -m slam.bench` on the simulator's scenarios
+  place_eval.py `python -m companion.slam_bench.place_eval bench|recall`: place-recognition timings and recognition figures
+  bench.py      `python -m companion.slam_bench` on the simulator's scenarios
 """

@@ -52,5 +52,5 @@ class SlamConfig(BaseModel):
     max_queued_map_updates: int = Field(32, ge=1, le=10000, description="MapUpdates held for poll_map_updates; the oldest are dropped beyond it (a full snapshot replaces all queued)")
     # loop closing
     loop_min_gap_keyframes: int = Field(30, ge=5, le=10000, description="a loop candidate must be this many keyframes older than the query")
-    loop_min_score: float = Field(0.06, gt=0, le=1, description="place-recognition score a loop candidate needs: DBoW2 L1 score of the tf-idf word vectors (slam/place.py), 0 nothing in common .. 1 identical. With the shipped vocabulary, revisits in the simulator score ~0.11 (median), the best unrelated place ~0.05 (median, at most ~0.06): `python -m slam.place_eval recall`")
+    loop_min_score: float = Field(0.06, gt=0, le=1, description="place-recognition score a loop candidate needs: DBoW2 L1 score of the tf-idf word vectors (slam/place.py), 0 nothing in common .. 1 identical. With the shipped vocabulary, revisits in the simulator score ~0.11 (median), the best unrelated place ~0.05 (median, at most ~0.06): `python -m companion.slam_bench.place_eval recall`")
     loop_min_inliers: int = Field(30, ge=6, le=1000, description="Sim(3) RANSAC inliers needed to accept a loop")

@@ -10,8 +10,8 @@ the sorted arrays (a copy of them: about a millisecond at 600 keyframes). Local 
 the entries: the newest ``slam.max_keyframes`` keyframes plus at most ``slam.max_loop_anchors``
 older ones (slam/mapping.py ``_forget_old``).
 
-Figures: ``python -m slam.place_eval bench`` (add/query time against the number of entries) and
-``python -m slam.place_eval recall`` (recognition on the simulator's loop revisits).
+Figures: ``python -m companion.slam_bench.place_eval bench`` (add/query time against the number of entries) and
+``python -m companion.slam_bench.place_eval recall`` (recognition on the simulator's loop revisits).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Values that cross the slam/ boundary.
 
-Frames (DESIGN.md): ``T_a_b`` is a 4x4 homogeneous transform mapping points in frame b to frame a.
+Frames (CONTRIBUTING.md, Naming): ``T_a_b`` is a 4x4 homogeneous transform mapping points in frame b to frame a.
 The camera frame is OpenCV's (x right, y down, z forward). ``slam`` is the local frame of the SLAM
 map: arbitrary origin and, for monocular SLAM, arbitrary scale. Times are monotonic seconds.
 """

@@ -9,7 +9,7 @@ L1-normalised; two vectors score ``sum_w min(a_w, b_w)`` = 1 - |a - b|_1 / 2 (DB
 Hand-written because no kept library provides it: DBoW2/DBoW3/fbow are C++ libraries, the PyPI
 packages that wrap or port them (pydbow 0.1.2 of 2022, pydbow3 0.2 of 2019) are single old
 releases, and the published ORB vocabularies are downloads of 40-150 MB. Ours is trained by
-``python -m slam.vocab_train`` (frames of our simulator + scikit-image photos) and shipped as
+``python -m companion.slam_bench.vocab_train`` (frames of our simulator + scikit-image photos) and shipped as
 ``slam/data/orb_vocab.npz`` (package data, 16 x 16 x 16 x 16 = 65536 words, 2.2 MB).
 """
 from __future__ import annotations
@@ -114,7 +114,7 @@ def load_vocabulary(path: Path = VOCAB_PATH) -> Vocabulary:
             arrays = {name: z[name] for name in ("k", "levels", "centroids", "valid", "idf", "meta", "sha256")}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
         raise VocabularyError(f"place-recognition vocabulary {path}: unreadable ({type(e).__name__}: {e}); "
-                              f"regenerate it with `python -m slam.vocab_train`") from e
+                              f"regenerate it with `python -m companion.slam_bench.vocab_train`") from e
     k, levels = int(arrays["k"]), int(arrays["levels"])
     centroids, valid, idf = arrays["centroids"], arrays["valid"], arrays["idf"]
     n_nodes = sum(k ** j for j in range(1, levels + 1)) if k >= 2 and levels >= 1 else -1
