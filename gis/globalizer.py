@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import math
 import threading
-
 from dataclasses import replace
 
 import numpy as np
@@ -42,7 +41,6 @@ from gis.config import AlignmentConfig
 from gis.geodesy import R_NED_ENU, LocalFrame, ecef_to_geodetic, ellipsoid_to_msl
 from gis.types import Alignment, AlignmentSource, GlobalFix
 from slam.types import SlamPose
-
 
 JUMP_MEMORY_S = 5.0     # e-folding time of a SLAM jump's term in the fix covariance
 VELOCITY_SMOOTHING = 0.3  # weight of the newest fix-to-fix velocity in the prediction (exponential)

@@ -29,7 +29,8 @@ class Alignment:
     origin, ordered [rot_x, rot_y, rot_z, t_e, t_n, t_u] (digital-twin paper Eq. 8–10), in
     1/rad² and 1/m². When center_slam is given, the ENU frame is the one at T_ecef_slam(center_slam)
     and rotations are about that point (the registration's crop centre), which keeps it well
-    conditioned; gis.globalizer propagates it to the camera with the lever arm from there. sigma_m: 1-σ position uncertainty (metres) the alignment contributes at the
+    conditioned; gis.globalizer propagates it to the camera with the lever arm from there.
+    sigma_m: 1-σ position uncertainty (metres) the alignment contributes at the
     map centre along the weakest direction. reset_counter / map_id: the SLAM map it applies to.
     fitness: fraction of SLAM points with a model correspondence; rmse_m: inlier RMSE.
     center_slam: (3,) SLAM-frame point the registration was centred on (its crop centre; for a GNSS

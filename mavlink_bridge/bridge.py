@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from gis.geodesy import LocalFrame, msl_to_ellipsoid, pressure_altitude_m
 from gis.types import GlobalFix
@@ -26,8 +27,6 @@ from mavlink_bridge.link import Link, load_signing_key
 from mavlink_bridge.monitor import EKF_STATUS_GPS_GLITCH, ESTIMATOR_GPS_GLITCH, GnssMonitor, sample_from_gps_raw
 from mavlink_bridge.policy import BridgeState, SwitchEvent, SwitchPolicy
 from mavlink_bridge.types import GnssQuality, GnssSample, GnssStatus, VehicleAttitude
-
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 log = logging.getLogger(__name__)
 

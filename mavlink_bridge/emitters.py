@@ -13,12 +13,11 @@ import math
 import time
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from gis.geodesy import LocalFrame
 from gis.types import GlobalFix
 from mavlink_bridge.config import MavlinkConfig
-
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 #: Which outputs each autopilot fuses (docs/AUTOPILOTS.md).
 SUPPORTED_OUTPUTS = {

@@ -32,12 +32,11 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from gis.geodesy import LocalFrame, ellipsoid_to_msl, msl_to_ellipsoid, pressure_hpa_at
 from mavlink_bridge.link import open_connection
 from mavlink_bridge.types import GnssSample, GpsFixType
-
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 PERSONALITIES = ("px4", "ardupilot")
 DEFAULT_PARAMS = {

@@ -76,7 +76,7 @@ class LocalMap:
 
 @dataclass(frozen=True)
 class MapSize:
-    """Counts and bytes of what the map holds (slam.bench --memory prints these)."""
+    """Counts and bytes of what the map holds (companion.slam_bench --memory prints these)."""
 
     keyframes: int  # all, including forgotten ones (pose only)
     keyframes_with_features: int

@@ -23,7 +23,14 @@ from slam.geometry import triangulate
 from slam.local_ba import LocalBundleAdjustment
 from slam.loop_closing import LoopClosing
 from slam.map import Keyframe, MapSize, SlamMap
-from slam.map_points import LEVELS_KEYFRAMES, TRIANGULATION_LOOKBACK, align_observations, cut_patches, fuse_points, triangulation_partners
+from slam.map_points import (
+    LEVELS_KEYFRAMES,
+    TRIANGULATION_LOOKBACK,
+    align_observations,
+    cut_patches,
+    fuse_points,
+    triangulation_partners,
+)
 from slam.matching import match_bf
 from slam.patches import PatchAligner
 from slam.place import PlaceIndex, place_index_of
@@ -91,7 +98,7 @@ class UpdateQueue:
 
 @dataclass(frozen=True)
 class MapMemory:
-    """What local mapping holds, for the memory benchmark (slam.bench --memory)."""
+    """What local mapping holds, for the memory benchmark (companion.slam_bench --memory)."""
 
     map: MapSize
     loop_anchors: int  # old keyframes kept with features for loop closing

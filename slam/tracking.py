@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from slam.config import SlamConfig
 from slam.features import Features
-from slam.geometry import R_slam_cam_levelled, T_from_rvec, inv_T, initialize_two_view, make_T, project, rvec_from_T
+from slam.geometry import R_slam_cam_levelled, T_from_rvec, initialize_two_view, inv_T, make_T, project, rvec_from_T
 from slam.map import Keyframe, LocalMap, SlamMap
 from slam.matching import TH_LOW, match_bf, match_by_projection
 from slam.patches import ImageLevels, image_levels

@@ -13,8 +13,8 @@ import pytest
 from gis.geodesy import LocalFrame
 from mavlink_bridge import emitters
 from mavlink_bridge.bridge import Bridge
-from mavlink_bridge.link import open_connection
 from mavlink_bridge.config import MavlinkConfig, SwitchingConfig
+from mavlink_bridge.link import open_connection
 from mavlink_bridge.policy import BridgeState
 from mavlink_bridge.scenario import Flight
 from mavlink_bridge.sim_autopilot import SimAutopilot

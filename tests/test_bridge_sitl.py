@@ -62,7 +62,7 @@ def test_judge_px4_is_honest_when_gnss_hides_fusion():
 
 
 def test_cli_rejects_bad_arguments():
-    from companion.cli import app, _register_subcommands
+    from companion.cli import _register_subcommands, app
     _register_subcommands()
     r = CliRunner().invoke(app, ["sitl-check", "--autopilot", "inav", "--connect", "udpin://0.0.0.0:14540"])
     assert r.exit_code == 2 and "px4 or ardupilot" in r.output

@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from gis import geodesy
-from gis.geodesy import LocalFrame, ecef_to_geodetic, ellipsoid_to_msl, geodetic_to_ecef, geoid_undulation_m, msl_to_ellipsoid
+from gis.geodesy import (
+    LocalFrame,
+    ecef_to_geodetic,
+    ellipsoid_to_msl,
+    geodetic_to_ecef,
+    geoid_undulation_m,
+    msl_to_ellipsoid,
+)
 
 A_M = 6378137.0
 F = 1 / 298.257223563

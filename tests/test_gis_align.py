@@ -15,8 +15,17 @@ from scipy.spatial.transform import Rotation
 
 from gis.align.bootstrap import DegenerateAlignment, gnss_bootstrap
 from gis.align.crop import _Crop
-from gis.align.fine import (CHI2_999, SCALE_MISMATCH_REASON, SPREAD_FRACTION, SYS_OFFSET_FRACTION, FineTuner, _Basin,
-                            _measurement_cov, _update, enu_sim3)
+from gis.align.fine import (
+    CHI2_999,
+    SCALE_MISMATCH_REASON,
+    SPREAD_FRACTION,
+    SYS_OFFSET_FRACTION,
+    FineTuner,
+    _Basin,
+    _measurement_cov,
+    _update,
+    enu_sim3,
+)
 from gis.align.icp import _gauss_newton_step, _Icp, _jacobian, _nearest, _nearest_among, _normal_equations
 from gis.align.scale_check import LEVEL_NORMAL_Z, SURFACE_RADIUS_M, SURFACE_STEP_M, WALL_RADIUS_M, nadir_scale_ratio
 from gis.config import AlignmentConfig

@@ -5,16 +5,16 @@ import json
 import struct
 
 import laspy
-import osmium
 import numpy as np
 import open3d as o3d
+import osmium
 import pytest
 import trimesh
 from pyproj import CRS, Transformer
 from scipy.spatial import cKDTree
 
-from gis.geodesy import geodetic_to_ecef, msl_to_ellipsoid
 from gis import loaders
+from gis.geodesy import geodetic_to_ecef, msl_to_ellipsoid
 from gis.loaders import DEFAULT_BUILDING_HEIGHT_M, LEVEL_HEIGHT_M, load_model
 from gis.model import BUILDING, GROUND, GisFormatError
 from gis.synthetic import box_city_mesh

@@ -132,8 +132,9 @@ def _dialect():
 
 def _tlog_messages(path: Path) -> list:
     """Every message of a tlog as pymavlink's log reader gives it back (with its ``_timestamp``)."""
-    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
     from pymavlink import mavutil
+
+    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
 
     log = mavutil.mavlink_connection(str(path), dialect=DIALECT)
     out = []

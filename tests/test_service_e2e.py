@@ -29,13 +29,12 @@ import psutil
 import pytest
 import yaml
 
-from test_companion_supervisor import NotifyListener  # tests/ is on sys.path (no package)
-
 from gis.cache import GisCache
 from gis.geodesy import LocalFrame, ellipsoid_to_msl
 from mavlink_bridge.scenario import Flight
 from mavlink_bridge.sim_autopilot import SimAutopilot
 from mavlink_bridge.types import GnssSample, GpsFixType
+from test_companion_supervisor import NotifyListener  # tests/ is on sys.path (no package)
 
 TERRASLAM = Path(sys.executable).with_name("terraslam")
 STALL_TIMEOUT_S = 1.0
@@ -204,7 +203,8 @@ def test_service_runs_supervised_talks_mavlink_and_stops_cleanly(tmp_path: Path,
     # fine-tuning's kernels were compiled or loaded before READY, under an extended start timeout
     msgs = notify.lst.messages
     kernels = [i for i, m in enumerate(msgs) if m.startswith("STATUS=starting: fine-tuning kernels")]
-    assert kernels and kernels[0] < next(i for i, m in enumerate(msgs) if "READY=1" in m.split("\n")) and any(m.startswith("EXTEND_TIMEOUT_USEC=") for m in msgs)
+    ready = next(i for i, m in enumerate(msgs) if "READY=1" in m.split("\n"))
+    assert kernels and kernels[0] < ready and any(m.startswith("EXTEND_TIMEOUT_USEC=") for m in msgs)
     # pings kept coming, both early and after the stage had to prove it beats on its own
     assert len([t for t in pings if t_ready < t]) >= 4
     assert any(t_ready + DEADLINE_S < t for t in pings)
@@ -456,8 +456,9 @@ def _check_recording(root: Path, feed: "VehicleFeed", loss_at: float, fixes_3d: 
     assert sum(float(r[1]) - feed.epoch_s > loss_at for r in fixes) >= len(fixes_3d) - 2, diag
     # the MAVLink traffic both ways as a telemetry log (pymavlink's reader), on the dataset's clock
     # through unix_time_minus_clock_s: every GPS_INPUT the autopilot got is in it, and ATTITUDE
-    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
     from pymavlink import mavutil
+
+    from mavlink_bridge.link import DIALECT  # sets MAVLINK20 before pymavlink is imported
 
     tlog = mavutil.mavlink_connection(str(out / "mavlink.tlog"), dialect=DIALECT)
     msgs = []

@@ -17,11 +17,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_service_e2e import (EPOCH_RE, MAX_FIX_AGE_S, SIM_FPS, TERRASLAM, TimedListener, VehicleFeed, _horizontal_m,
-                              _service_env, _write_config, gis_mesh, stop_all)  # noqa: F401  (gis_mesh is a fixture)
-
 from mavlink_bridge.sim_autopilot import SimAutopilot
 from slam.persist import load_map_file
+from test_service_e2e import (
+    EPOCH_RE,
+    MAX_FIX_AGE_S,
+    SIM_FPS,
+    TERRASLAM,
+    TimedListener,
+    VehicleFeed,
+    _horizontal_m,
+    _service_env,  # noqa: F401  (gis_mesh is a fixture)
+    _write_config,
+    stop_all,
+)
 
 ALIGN_BY_S = 24.0      # flight time: the GNSS alignment must exist by then (bootstrap: ~15 s at 2 fps + init)
 FIRST_FIX_BOUND_S = 5.0  # issue 7 target: first valid fix <= 5 s after the restart's pipeline is up

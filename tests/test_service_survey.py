@@ -18,12 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_service_e2e import (TERRASLAM, TimedListener, VehicleFeed, _horizontal_m, _service_env, gis_mesh,  # noqa: F401
-                              stop_all)
+from mavlink_bridge.sim_autopilot import SimAutopilot
+from test_service_e2e import TERRASLAM, TimedListener, VehicleFeed, _horizontal_m, _service_env, gis_mesh, stop_all  # noqa: F401
 from test_service_restart import _epoch
 from test_survey_map import build_survey
-
-from mavlink_bridge.sim_autopilot import SimAutopilot
 
 FPS = 5.0
 N_FIXES = 15
@@ -33,9 +31,8 @@ N_FIXES = 15
 @pytest.mark.timeout(600)
 def test_service_at_a_surveyed_site_sends_fixes_with_no_gnss_ever(tmp_path: Path, gis_mesh: Path) -> None:  # noqa: F811
     from companion.sim import make_scenario
-    from gis.loaders import load_model
-
     from gis.geodesy import LocalFrame
+    from gis.loaders import load_model
     from gis.synthetic import box_city_model
 
     cache, site, *_ = build_survey(tmp_path, model=load_model(gis_mesh, 1.0))

@@ -91,7 +91,7 @@ def test_reader_names_the_broken_file(runner, tmp_path):
     assert "camera.yaml" in broken("nocam", lambda d: (d / "camera.yaml").unlink())
     assert "T_body_cam" in broken("mount", lambda d: (d / "mount.yaml").write_text("T_body_cam: [[1, 2], [3, 4]]\n"))
     for bad in ("[0.1, 0.2]", "[0.0, 0.0, .nan]", "[0, 0, -40]", "tall"):
-        assert "p_body_gnss_m" in broken(f"antenna{bad}", lambda d: (d / "mount.yaml").write_text(
+        assert "p_body_gnss_m" in broken(f"antenna{bad}", lambda d, bad=bad: (d / "mount.yaml").write_text(
             (d / "mount.yaml").read_text().replace("p_body_gnss_m:", "p_body_gnss_m: " + bad + "\nx_old:")))
     assert read_dataset(src).p_body_gnss_m.tolist() == [0.0, 0.0, 0.0]
     assert "truth.csv" in broken("truth", lambda d: (d / "truth.csv").write_text(

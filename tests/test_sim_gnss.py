@@ -103,8 +103,9 @@ def test_live_steps_carry_gnss_and_attitude_at_their_rates():
     assert n_g == len(sc.gnss_samples) == 11  # 5 Hz over [0, 2] s
     assert n_a == len(sc.attitude_samples) == 101  # 50 Hz
     # attitude ≈ truth (noise + bias of a few tenths of a degree), baro ≈ height above take-off
-    from companion.sim.autopilot_signals import R_ned_body_at_vehicle
     from scipy.spatial.transform import Rotation
+
+    from companion.sim.autopilot_signals import R_ned_body_at_vehicle
 
     tr = sc.truth
     ypr = Rotation.from_matrix(R_ned_body_at_vehicle(sc.origin, tr.T_enu_body[:, :3, :3], tr.lat, tr.lon)).as_euler("ZYX")

@@ -245,7 +245,6 @@ def test_service_with_site_auto_waits_for_trusted_gnss_then_runs_in_the_covering
     within gis.position_wait_s it exits 1 (systemd starts it again), naming the problem."""
     from companion.sim import make_scenario
     from gis.loaders import load_model
-
     from test_service_e2e import TERRASLAM, TimedListener, _service_env  # tests/ is on sys.path
 
     scenario = make_scenario("nominal")

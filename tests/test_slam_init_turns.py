@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from slam.config import SlamConfig
-from slam.geometry import _motion_candidates, initialize_two_view, make_T, project, triangulate
 from slam.features import Features
+from slam.geometry import _motion_candidates, initialize_two_view, make_T, project, triangulate
 from slam.map import LocalMap
 from slam.tracking import PoseEstimate, Tracker
 from slam.types import Frame, TrackingState

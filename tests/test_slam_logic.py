@@ -114,8 +114,8 @@ def test_a_loop_correction_gives_the_loops_middle_its_share_so_no_step_opens_in_
     distance along the loop (slam.loop_closing.loop_shares), and each point moves with its reference
     keyframe. With the window alone moved, the step into the window was 7.7 m off the true one
     (checked); with the shares every step is within 0.8 m of the true 8 m."""
-    from slam.map import Keyframe, SlamMap
     from slam.loop_closing import loop_shares, move_by_corrections
+    from slam.map import Keyframe, SlamMap
 
     n, r, d_rot, d_scale = 48, 60.0, np.deg2rad(0.1), 1.002
     ang = np.linspace(0, 2 * np.pi, n)

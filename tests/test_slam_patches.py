@@ -88,7 +88,8 @@ def test_distorted_camera_positions_stay_undistorted_pixels():
     b = _shifted(a, shift, gain=1.0, offset=0.0, seed=4)
     rng = np.random.default_rng(5)
     d_a = rng.uniform(80, [W_PX - 80, H_PX - 80], (150, 2))  # distorted pixels in a
-    undist = lambda d: cv2.undistortPoints(d.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    def undist(d):
+        return cv2.undistortPoints(d.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
     oct_ = np.zeros(len(d_a), int)
     patches, cut_ok = al.cut(image_levels(a, oct_), undist(d_a), oct_)
     truth = undist(d_a + shift)

@@ -22,10 +22,11 @@ from typing import Callable
 
 import numpy as np
 
-from companion.app import RunLog, build_localizer, summarize, write_outputs
+from companion.app import build_localizer
 from companion.config import AppConfig
 from companion.evaluate import write_report
 from companion.pipeline import PipelineInput, attitude_prior
+from companion.run_log import RunLog, summarize, write_outputs
 from companion.sitl import bundle as sitl_bundle
 from companion.sitl.truth import TruthFeed, TruthState
 from companion.sitl.vehicle import Vehicle
@@ -224,9 +225,6 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             if est is not None:
                 s_est = truth.at(est[0]) or truth.latest()
                 run.autopilot_err_m.append((est[0], _horizontal_m(est[1], est[2], s_est.lat_deg, s_est.lon_deg), "ekf"))
-            if seq % 20 == 0 and att is not None:
-                log.warning("DBG t=%.1f baro=%s truth_alt=%.2f gnss=%s", t_frame, att.baro_alt_m, state.alt_msl_m,
-                            None if status.sample is None else round(status.sample.alt_msl_m, 2))
             if progress is not None:
                 progress(t_frame - t0, f"{bridge.state.value} {rec.pose.state.value}")
             seq += 1

@@ -42,11 +42,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gis.align.fine import enu_sim3
 from gis.geodesy import LocalFrame, R_ecef_enu, ecef_to_geodetic
 from gis.sim3 import Sim3, compose, umeyama
 from gis.types import Alignment, AlignmentSource
-from gis.align.fine import enu_sim3
-
 
 MISFIT_WINDOW_S = 3.0  # the newest pairs whose mean residual shows a bent track's offset at its end
 RECENCY_TAU_S = 5.0    # pair weights exp(−age/τ): the fit holds where the track ends (module doc)

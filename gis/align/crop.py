@@ -14,7 +14,6 @@ from scipy.spatial import cKDTree
 
 from gis.model import GisModel
 
-
 TILE_M = 25.0                  # GIS crop tiles (voxelised once, cached); rounded to a multiple of target_voxel_m
 MAX_CACHED_TILES = 4096        # ≈ 2.5 km² of voxelised tiles kept (least recently used dropped)
 PREFETCH_MAX_STEP_M = 150.0    # a prefetched crop reaches at most this far beyond the last registration's (_CropCache.prefetch)

@@ -130,10 +130,18 @@ from threadpoolctl import ThreadpoolController
 
 from gis.align.crop import TILE_M, _Crop, _CropCache, _in_square
 from gis.align.georef import GeorefCorrection, IcpMeasurement
-from gis.align.icp import _evaluate, _icp, _Icp, compile_kernels
-from gis.align.scale_check import (MAX_SCALE_MISMATCH, NADIR_RADIUS_M, SCALE_MISMATCH_REASON, TRACKED_MAX_SCALE_MISMATCH,
-                                   TRACKED_RADIUS_M, WALL_RADIUS_M, ScaleCheck, nadir_scale_ratio)
-from gis.align.scale_check import NADIR_MIN_POINTS  # noqa: F401 (companion.pipeline imports it from here)
+from gis.align.icp import _evaluate, _Icp, _icp, compile_kernels
+from gis.align.scale_check import (
+    MAX_SCALE_MISMATCH,
+    NADIR_MIN_POINTS,  # noqa: F401 (companion.pipeline imports it from here)
+    NADIR_RADIUS_M,
+    SCALE_MISMATCH_REASON,
+    TRACKED_MAX_SCALE_MISMATCH,
+    TRACKED_RADIUS_M,
+    WALL_RADIUS_M,
+    ScaleCheck,
+    nadir_scale_ratio,
+)
 from gis.config import AlignmentConfig
 from gis.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from gis.model import GisModel

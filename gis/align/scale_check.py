@@ -24,7 +24,6 @@ from scipy.spatial import cKDTree
 
 from gis.align.crop import _Crop, _in_square
 
-
 # Scale check against the barometer (beyond the papers; docs/BENCHMARKS.md "Fine-tuning update"):
 SCALE_MISMATCH_REASON = "SLAM scale under the camera disagrees with the barometer"
 NADIR_RADIUS_M = 30.0          # SLAM points within this horizontal distance of the camera are tested
@@ -43,7 +42,9 @@ WALL_RADIUS_M = 3.0            # ... and no wall of the model this close: a poin
                                # it, found only ground (or roof) within SURFACE_RADIUS_M and read k ≈ 1.5 (`loop` seed 1)
 SURFACE_STEP_M = 1.0           # level model surfaces under a point further apart in height: an edge, no test
 LEVEL_NORMAL_Z = 0.8           # a model point on a level surface (ground, roof): |normal up-component| above this
-MAX_SCALE_MISMATCH = 0.06      # |k − 1| tolerated beyond the quartiles' 3σ bounds (demo seeds 0/4/5: good registrations' medians 0.946–1.022, the scale break 1.080–1.084)
+# |k − 1| tolerated beyond the quartiles' 3σ bounds (demo seeds 0/4/5: good registrations' medians
+# 0.946–1.022, the scale break 1.080–1.084)
+MAX_SCALE_MISMATCH = 0.06
 #: SLAM scale errors measured lie within a few tens of percent (breaks in turns: 6–20 %); a median ratio
 #: outside these bounds (or not positive: the model's surface above the camera) is no scale error SLAM
 #: makes: the GIS model's heights are off (a wrong vertical datum or unit, an ignored offset)

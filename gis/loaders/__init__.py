@@ -62,7 +62,6 @@ from gis.loaders.tiles import load_3dtiles
 from gis.loaders.tiles import tileset_contents as tileset_contents
 from gis.model import GisFormatError, GisModel, model_from_npz
 
-
 #: bump when a loader's output for the same file changes, so that imports cached by an older one
 #: are not reused (``source_key``); 2: LAS thinning, 3D Tiles level of detail, cell-sorted points;
 #: 3: heights' datum and unit read or refused (gis.loaders.heights), a GeoTIFF's sidecar offset_m added

@@ -14,7 +14,6 @@ from gis.loaders.georef import _georeferenced
 from gis.loaders.heights import georef_of, read_sidecar
 from gis.model import BUILDING, GROUND, HIGH_VEGETATION, ROAD, UNCLASSIFIED, GisFormatError, GisModel
 
-
 _CITYJSON_LABELS = {
     "Building": BUILDING, "BuildingPart": BUILDING, "BuildingInstallation": BUILDING,
     "Road": ROAD, "Railway": ROAD, "TransportSquare": ROAD,

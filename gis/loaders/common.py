@@ -12,7 +12,6 @@ from matplotlib.path import Path as PolyPath
 
 from gis.model import GisFormatError
 
-
 #: glTF is Y-up; 3D Tiles and our georeferenced files are Z-up: (x, y, z)_gltf → (x, −z, y).
 R_ZUP_YUP = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
 

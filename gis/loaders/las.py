@@ -12,7 +12,6 @@ from gis.loaders.georef import _georeferenced
 from gis.loaders.heights import georef_of, read_sidecar
 from gis.model import GisFormatError, GisModel
 
-
 #: ASPRS classes that are not surfaces: 7 low point (noise), 18 high noise (birds, multipath)
 LAS_NOISE_CLASSES = (7, 18)
 #: points read from a LAS/LAZ file at a time (bounded memory on a companion board: ~100 MB per chunk)

@@ -13,7 +13,6 @@ from gis.loaders.common import R_ZUP_YUP, _read_json, first_per_voxel, sample_me
 from gis.loaders.georef import _georeferenced, read_georef
 from gis.model import UNCLASSIFIED, GisFormatError, GisModel
 
-
 _LABEL_KEYS = ("classification", "label", "class")
 
 

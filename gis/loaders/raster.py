@@ -14,7 +14,6 @@ from gis.loaders.georef import crs_to_ecef
 from gis.loaders.heights import Georef, georef_of, read_sidecar
 from gis.model import UNCLASSIFIED, GisFormatError, GisModel, model_from_ecef
 
-
 #: output pixels per side of the blocks a raster is read and triangulated in (bounded memory)
 RASTER_BLOCK_PX = 256
 

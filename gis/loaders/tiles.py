@@ -17,7 +17,15 @@ from gis.geodesy import R_ecef_enu, ecef_to_geodetic
 from gis.implicit_tiles import IMPLICIT, ImplicitTilingError, implicit_children, implicit_root
 from gis.loaders.common import R_ZUP_YUP, _median_spacing, _read_json, estimate_normals, first_per_voxel, sample_mesh
 from gis.loaders.mesh import _glb_json, check_gltf_extensions
-from gis.model import UNCLASSIFIED, GisFormatError, GisModel, check_on_earth, frame_at_centroid, merge_models, model_from_ecef
+from gis.model import (
+    UNCLASSIFIED,
+    GisFormatError,
+    GisModel,
+    check_on_earth,
+    frame_at_centroid,
+    merge_models,
+    model_from_ecef,
+)
 
 
 def load_3dtiles(tileset_path: Path, sample_spacing_m: float = 1.0,
