@@ -60,3 +60,7 @@ def _register_subcommands() -> None:
 def main() -> None:
     _register_subcommands()
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -21,10 +21,12 @@ SCRIPTS = {"ardupilot": "start_arducopter.sh", "px4": "start_px4.sh"}
 #: source until we take over, no on-board logs (a SITL flight would write megabytes), and a
 #: return altitude above the city's roofs (the buildings reach 60 m; the SITL knows no buildings).
 PARAMS: dict[tuple[str, str], dict[str, float]] = {
-    ("ardupilot", "gps_input"): {"GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0, "GPS2_DELAY_MS": 100},
+    # GPS_INPUT carries no time: GPS2_DELAY_MS is our capture-to-wire latency (15–60 ms of SITL time at speed 0.5)
+    ("ardupilot", "gps_input"): {"GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0, "GPS2_DELAY_MS": 50},
     ("ardupilot", "odometry"): {"VISO_TYPE": 1, "VISO_DELAY_MS": 100, "EK3_SRC2_POSXY": 6, "EK3_SRC2_VELXY": 0,
                                 "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1},
-    ("px4", "odometry"): {"EKF2_EV_CTRL": 1, "EKF2_EV_NOISE_MD": 0, "EKF2_EV_DELAY": 100},
+    # ODOMETRY is stamped with the frame's capture time (PX4 maps it through TIMESYNC): no extra delay
+    ("px4", "odometry"): {"EKF2_EV_CTRL": 1, "EKF2_EV_NOISE_MD": 0, "EKF2_EV_DELAY": 0},
     ("px4", "global_position_sensor"): {"EKF2_AGP0_ID": 1, "EKF2_AGP0_CTRL": 1, "EKF2_AGP0_DELAY": 100},
 }
 #: The heading follows the course and turns at most 20°/s, as a survey pilot flies a camera: a
@@ -35,6 +37,9 @@ COMMON = {
     "px4": {"SDLOG_BACKEND": 0, "RTL_RETURN_ALT": 80, "RTL_DESCEND_ALT": 80, "MPC_Z_VEL_MAX_UP": 5,
             "COM_DISARM_LAND": 2, "MPC_YAW_MODE": 3, "MPC_YAWRAUTO_MAX": 20},
 }
+#: How old a SITL receiver's solution is when the autopilot stamps it (mavlink.gnss_delay_s): ArduPilot
+#: SITL's SIM_GPS1_LAG_MS (default 100 ms); PX4 SIH's sensor_gps_sim publishes without lag
+GNSS_DELAY_S = {"ardupilot": 0.1, "px4": 0.0}
 #: GNSS off / on with the SITL's own receiver switch (docs/AUTOPILOTS.md)
 GNSS_PARAM = {"ardupilot": ("SIM_GPS1_ENABLE", 0, 1), "px4": ("SIM_GPS_USED", 0, 10)}
 
@@ -119,6 +124,36 @@ def boot_params(autopilot: str, output: str) -> dict[str, float]:
     return {**COMMON[autopilot], **PARAMS[(autopilot, output)]}
 
 
+def px4_runnable(bundle: Path, scratch: Path) -> Path:
+    """The bundle, or where its PX4 clients are missing, a copy made of links in ``scratch``.
+
+    PX4's start-up script runs its commands as ``px4-<module>`` links to the ``px4`` binary beside
+    it; a copy of the bundle that kept those links as plain files (a read-only mount, an archive
+    without symlinks) cannot start. The copy links everything back to the bundle and makes each
+    ``px4-<module>`` a link to ``px4`` again; nothing of the bundle is copied."""
+    bin_dir = bundle / "px4" / "bin"
+    clients = [p for p in bin_dir.glob("px4-*") if p.suffix != ".sh"]
+    if all(p.is_symlink() or os.access(p, os.X_OK) for p in clients):
+        return bundle
+    shadow = scratch / "sitl-bundle"
+    (shadow / "px4" / "bin").mkdir(parents=True, exist_ok=True)
+    for entry in bundle.iterdir():
+        if entry.name != "px4":
+            _link(shadow / entry.name, entry)
+    for entry in (bundle / "px4").iterdir():
+        if entry.name != "bin":
+            _link(shadow / "px4" / entry.name, entry)
+    for entry in bin_dir.iterdir():
+        _link(shadow / "px4" / "bin" / entry.name, Path("px4") if entry in clients else entry)
+    return shadow
+
+
+def _link(at: Path, to: Path) -> None:
+    if at.is_symlink() or at.exists():
+        at.unlink()
+    at.symlink_to(to)
+
+
 def start(bundle: Path, autopilot: str, output: str, workdir: Path, home: Home, speed: float = 1.0,
           instance: int = 0, extra_params: dict[str, float] | None = None) -> Sitl:
     """Start the autopilot from factory defaults (its WORKDIR wiped) with our output's parameters."""
@@ -135,6 +170,8 @@ def start(bundle: Path, autopilot: str, output: str, workdir: Path, home: Home, 
         env.update(PX4_HOME_LAT=f"{home.lat_deg:.8f}", PX4_HOME_LON=f"{home.lon_deg:.8f}",
                    PX4_HOME_ALT=f"{home.alt_msl_m:.2f}", PX4_SIM_SPEED_FACTOR=f"{speed:g}", PX4_WIPE="1",
                    **{f"PX4_PARAM_{k}": f"{v:g}" for k, v in params.items()})
+    if autopilot == "px4":
+        bundle = px4_runnable(bundle, workdir.parent)
     script = bundle / SCRIPTS[autopilot]
     r = subprocess.run(["bash", str(script), str(workdir), str(instance)], env=env, capture_output=True,
                        text=True, timeout=60)

@@ -150,7 +150,8 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         vehicle = Vehicle(sitl.mission_url, truth.clock)
         mav_cfg = cfg.mavlink.model_copy(update={
             "connect": sitl.bridge_url, "autopilot": opts.autopilot, "output": opts.out, "gps_id": 1,
-            "target_system": sitl.system_id, "source_system": sitl.system_id, "rate_hz": max(opts.fps, 1.0)})
+            "target_system": sitl.system_id, "source_system": sitl.system_id, "rate_hz": max(opts.fps, 1.0),
+            "gnss_delay_s": sitl_bundle.GNSS_DELAY_S[opts.autopilot]})
         bridge = Bridge(mav_cfg, cfg.switching, clock=truth.clock).start()
         # ready to fly on GNSS: the receiver trusted and the EKF's absolute position, as the autopilot
         # tells the bridge (EKF_STATUS_REPORT / ESTIMATOR_STATUS; MAVSDK's health needs SYS_STATUS

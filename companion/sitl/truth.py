@@ -5,7 +5,9 @@
   ATTITUDE in the same scheduler slot, SIM_STATE first (seen on the bundle's build), so each
   SIM_STATE takes the ``time_boot_ms`` of the ATTITUDE that follows it when both are requested at
   the same interval.
-- PX4 SIH: HIL_STATE_QUATERNION on SIH's display link, stamped with PX4's own (lockstep) time.
+- PX4 SIH: HIL_STATE_QUATERNION on SIH's display link. Its time_usec is 0 in this PX4 (main of
+  2026-03), so each takes the PX4 (lockstep) time of the newest HIL_ACTUATOR_CONTROLS, which the
+  same link sends at 250 Hz: stamped within 4 ms (3 cm at 7 m/s).
 
 Times are the autopilot's boot time in seconds: the pipeline, the bridge and the report all run
 on it (``TruthFeed.clock``), so a SITL slower or faster than real time changes nothing they judge.
@@ -76,6 +78,7 @@ class TruthFeed:
         self._t: list[float] = []
         self._s: list[TruthState] = []
         self._pending: TruthState | None = None  # ArduPilot: SIM_STATE waiting for its ATTITUDE
+        self._px4_time_s: float | None = None    # PX4: time of the newest HIL_ACTUATOR_CONTROLS
         self._last_wall = time.monotonic()
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
@@ -151,9 +154,11 @@ class TruthFeed:
             elif t == "ATTITUDE" and self._pending is not None:
                 s, self._pending = self._pending, None
                 self._add(TruthState(msg.time_boot_ms / 1e3, s.lat_deg, s.lon_deg, s.alt_msl_m, s.q_ned_body, s.v_ned_mps))
-            elif t == "HIL_STATE_QUATERNION":
+            elif t == "HIL_ACTUATOR_CONTROLS":
+                self._px4_time_s = msg.time_usec / 1e6
+            elif t == "HIL_STATE_QUATERNION" and (msg.time_usec or self._px4_time_s is not None):
                 q = tuple(float(v) for v in msg.attitude_quaternion)
-                self._add(TruthState(msg.time_usec / 1e6, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt / 1e3, q,
+                self._add(TruthState(msg.time_usec / 1e6 if msg.time_usec else self._px4_time_s, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt / 1e3, q,
                                      (msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0)))
 
     def _add(self, s: TruthState) -> None:

@@ -141,7 +141,24 @@ class Vehicle:
                              is_fly_through=True, acceptance_radius_m=5.0) for lat, lon in waypoints_deg]
         self.mission.set_return_to_launch_after_mission(return_home)
         self.mission.upload_mission(MissionPlan(items))
-        self.mission.start_mission()
+        # PX4 may refuse the mission mode for a moment after an upload ("Switching to Mission is
+        # currently not available") while answering the command: believe the flight mode it reports
+        for _ in range(15):
+            try:
+                self.mission.start_mission()
+            except Exception as e:  # MissionError: try again
+                log.info("start_mission: %s", e)
+            end = time.monotonic() + 3.0
+            while time.monotonic() < end:
+                if self.mode() == "MISSION":
+                    return
+                time.sleep(0.1)
+        raise TimeoutError(f"vehicle: mission mode refused; mode {self.mode()}, last texts: "
+                           + " | ".join(s for _, s in self.log.texts[-8:]))
+
+    def mode(self) -> str | None:
+        with self._lock:
+            return self.log.modes[-1][1] if self.log.modes else None
 
     def return_home(self) -> None:
         self.action.return_to_launch()

@@ -1,0 +1,49 @@
+"""Closed-loop flights against the real autopilots (``terraslam sitl``): a short mission over the
+simulated city per autopilot, the SITL's GNSS switched off with its own command, our camera and
+SLAM feeding the autopilot. Run whenever a SITL bundle is given (TERRASLAM_SITL_DIR; CI points it
+at the project's bundle), skipped with the reason otherwise. Judged from the autopilot's side: its
+own estimate against the simulator's truth, its confirmation of the source switch, its texts."""
+import os
+
+import pytest
+
+from companion.config import load_config
+from companion.sitl.bundle import ENV_VAR, SitlError, find_bundle
+from companion.sitl.flight import SitlOptions, run_sitl
+
+pytestmark = pytest.mark.sitl
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    try:
+        return find_bundle(os.environ.get(ENV_VAR))
+    except SitlError as e:
+        pytest.skip(f"no SITL bundle ({e})")
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_closed_loop_gnss_off_our_fixes_carry_the_autopilot(bundle, autopilot, tmp_path):
+    opts = SitlOptions(autopilot=autopilot, speed=0.5, gnss_off_after_s=15.0, gnss_off_for_s=None, max_flight_s=40.0)
+    s = run_sitl(load_config(), bundle, tmp_path, opts)
+    sitl = s["sitl"]
+    assert sitl["takeover_after_gnss_off_s"] is not None and 0.0 <= sitl["takeover_after_gnss_off_s"] <= 1.0, sitl["events"]
+    assert sitl["source_switch"] == "confirmed"          # the autopilot said it switched (PARAM_VALUE)
+    assert s["fix_ratio_after_takeover"] >= 0.9, s["tracking_events"]
+    assert s["after_takeover"]["integrity_violation_ratio"] <= 0.01
+    denial = sitl["autopilot_error_in_denial_m"]
+    assert denial["n"] > 50 and denial["mean"] <= 1.5 and denial["max"] <= 3.0, denial  # its own estimate vs truth
+    assert sitl["failsafes"] == [], sitl["autopilot_texts"]
+    assert sitl["origin_sent"] == 0                     # it had its own EKF origin from GNSS: never offered ours
+
+
+def test_missing_bundle_is_a_clear_error(tmp_path):
+    with pytest.raises(SitlError, match="start_arducopter.sh"):
+        find_bundle(tmp_path)
+    with pytest.raises(SitlError, match="TERRASLAM_SITL_DIR"):
+        find_bundle("")
+
+
+def test_outputs_without_a_sitl_setup_are_refused():
+    with pytest.raises(SitlError, match="px4 with output gps_input"):
+        SitlOptions(autopilot="px4", output="gps_input")
