@@ -111,6 +111,7 @@ class Bridge:
         self._last_emit_s = -math.inf
         self._last_fix_s: float | None = None   # clock time of the last fix we wrote
         self._last_fix: GlobalFix | None = None
+        self._offered_s: float | None = None     # clock time of our last fresh, trustworthy fix (sent or not)
         self._last_hb_rx_s: float | None = None
         self._link_up_since_s: float | None = None
         self._last_rx_s = -math.inf               # any message from the autopilot
@@ -218,6 +219,8 @@ class Bridge:
         if fix is None or t0 - fix.t_s > self.cfg.max_fix_age_s:
             self._stop_output("tracking lost" if fix is None else f"fix {t0 - fix.t_s:.2f} s old")
             return
+        if emitters.trustworthy(fix, self.cfg):
+            self._offered_s = t0
         if state is BridgeState.STANDBY and not self.cfg.feed_in_standby:
             return
         if t0 - self._last_emit_s < 0.9 * self._period_s:
@@ -418,7 +421,8 @@ class Bridge:
         judged = link_up and now - self._link_up_since_s >= stale and now - self._last_rx_s <= stale / 2
         with self._lock:
             status = self.monitor.status(now)
-            event = self.policy.update(status, judged)
+            have_fix = self._offered_s is not None and now - self._offered_s <= self.cfg.max_fix_age_s
+            event = self.policy.update(status, judged, have_fix)
             need_origin = self._origin is None
         if event is not None:
             self._on_switch(event)

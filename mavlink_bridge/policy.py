@@ -39,8 +39,12 @@ class SwitchPolicy:
     _good_since_s: float | None = None
     _degraded_since_s: float | None = None
 
-    def update(self, status: GnssStatus, link_up: bool = True) -> SwitchEvent | None:
-        """Feed the monitor's verdict; returns the transition it caused, if any."""
+    def update(self, status: GnssStatus, link_up: bool = True, have_fix: bool = True) -> SwitchEvent | None:
+        """Feed the monitor's verdict; returns the transition it caused, if any. ``have_fix``: we
+        have a fresh fix to offer. A lost or degraded receiver is taken over only then: an
+        autopilot switched to a source with nothing in it gains nothing (at boot, before the
+        receiver's first fix, it would only fight its acquisition); an untrusted (spoofed) one is
+        taken over regardless, as following it is worse than dead reckoning."""
         now = status.t_s
         if self.entered_s is None:
             self.entered_s = now
@@ -52,9 +56,9 @@ class SwitchPolicy:
         self._degraded_since_s = (self._degraded_since_s if self._degraded_since_s is not None else now) if q is GnssQuality.DEGRADED else None
         why = "; ".join(status.reasons)
         if self.state is BridgeState.STANDBY:
-            if q in (GnssQuality.LOST, GnssQuality.UNTRUSTED):
+            if q is GnssQuality.UNTRUSTED or (q is GnssQuality.LOST and have_fix):
                 return self._go(BridgeState.ACTIVE, now, f"GNSS {q.value}: {why}")
-            if q is GnssQuality.DEGRADED and now - self._degraded_since_s >= self.cfg.degraded_takeover_s:
+            if q is GnssQuality.DEGRADED and have_fix and now - self._degraded_since_s >= self.cfg.degraded_takeover_s:
                 return self._go(BridgeState.ACTIVE, now, f"GNSS degraded for {now - self._degraded_since_s:.1f} s: {why}")
             return None
         good_for = now - self._good_since_s if self._good_since_s is not None else 0.0

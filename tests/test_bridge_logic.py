@@ -34,10 +34,25 @@ def test_gps_raw_int_decodes_units_and_sentinels():
     s = sample_from_gps_raw(m, 10.0)
     assert s.fix_type is GpsFixType.FIX_3D and s.satellites == 11
     assert s.lat_deg == pytest.approx(47.3977) and s.alt_msl_m == pytest.approx(520.123)
-    assert s.eph == pytest.approx(1.2) and s.h_acc_m == pytest.approx(1.5) and s.h_ellipsoid_m == pytest.approx(567.89)
+    assert s.eph == pytest.approx(1.2) and s.h_acc_m == pytest.approx(1.5)
+    # the ellipsoidal height is alt (MSL) + EGM96, the geoid our fixes go back through (alt_ellipsoid 567.89
+    # says the receiver's geoid is 47.77 m here; EGM96 within a metre of it)
+    from gis.geodesy import msl_to_ellipsoid
+    assert s.h_ellipsoid_m == pytest.approx(float(msl_to_ellipsoid(47.3977, 8.5456, 520.123))) == pytest.approx(567.89, abs=1.0)
     assert s.vel_ned_mps[0] == pytest.approx(0.0, abs=1e-9) and s.vel_ned_mps[1] == pytest.approx(5.0)
     lost = sample_from_gps_raw(wire(MAV.gps_raw_int_encode(0, 0, 0, 0, 0, 65535, 65535, 65535, 65535, 255)), 10.0)
     assert math.isnan(lost.eph) and math.isnan(lost.h_acc_m) and lost.vel_ned_mps is None
+
+
+def test_receiver_without_a_geoid_is_reported(caplog):
+    # ArduPilot and PX4 SITL report alt_ellipsoid = alt: 47 m off EGM96 at this latitude
+    import mavlink_bridge.monitor as monitor
+    monitor._geoid_warned = False
+    with caplog.at_level("WARNING", logger="mavlink_bridge.monitor"):
+        s = sample_from_gps_raw(wire(MAV.gps_raw_int_encode(0, 3, 473977000, 85456000, 520123, 120, 180, 500, 9000, 11,
+                                                            520123, 1500, 2500, 0, 0, 0)), 10.0)
+    assert s.h_ellipsoid_m == pytest.approx(567.9, abs=1.0)  # not the 520.1 the receiver calls ellipsoidal
+    assert any("another geoid" in r.message for r in caplog.records)
 
 
 def test_assess_sample_verdicts():

@@ -441,3 +441,13 @@ def test_wrong_target_system_is_reported(rigs):
         assert 2 in rig.bridge.stats().other_systems and not rig.bridge.stats().link_up
     finally:
         sim.close()
+
+
+def test_no_takeover_without_a_fix_to_offer(rigs):
+    # the companion boots before the receiver's first fix (seen on ArduPilot SITL): taking over then
+    # made our empty GPS instance primary during the receiver's acquisition
+    rig = rigs("ardupilot")
+    rig.fly(2.5, gnss="lost", fix=False)
+    assert rig.bridge.state is BridgeState.STANDBY and rig.bridge.events() == []
+    assert rig.sim.received().counts["PARAM_SET"] == 0
+    assert rig.fly(2.0, gnss="lost", until=lambda: rig.bridge.state is BridgeState.ACTIVE)  # a fix to offer: now

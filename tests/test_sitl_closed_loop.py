@@ -24,7 +24,8 @@ def bundle():
 
 @pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
 def test_closed_loop_gnss_off_our_fixes_carry_the_autopilot(bundle, autopilot, tmp_path):
-    opts = SitlOptions(autopilot=autopilot, speed=0.5, gnss_off_after_s=15.0, gnss_off_for_s=None, max_flight_s=40.0)
+    # 25 s of GNSS with the camera on (GNSS fits, the first GIS registrations), then 30 s without
+    opts = SitlOptions(autopilot=autopilot, speed=0.6, gnss_off_after_s=25.0, gnss_off_for_s=None, max_flight_s=55.0)
     s = run_sitl(load_config(), bundle, tmp_path, opts)
     sitl = s["sitl"]
     assert sitl["takeover_after_gnss_off_s"] is not None and 0.0 <= sitl["takeover_after_gnss_off_s"] <= 1.0, sitl["events"]

@@ -60,9 +60,9 @@ class SitlOptions:
     speed_mps: float = 7.0
     size_m: float = 200.0                # side of the square flown over the city's centre
     laps: float = 1.75
-    gnss_off_after_s: float = 40.0       # SITL time after the mission starts
+    gnss_off_after_s: float = 40.0       # SITL time after the camera starts (the GNSS fits and first registrations need ~20 s)
     gnss_off_for_s: float | None = 120.0  # None: GNSS stays off to the end
-    max_flight_s: float | None = None    # end this long after the mission starts (None: fly to the landing)
+    max_flight_s: float | None = None    # end this long after the camera starts (None: fly to the landing)
     offset_probe_m: float = 0.0          # add this much east to our fixes over the denial's last 10 s (is the EKF following us?)
     instance: int = 0
 
@@ -86,6 +86,7 @@ class Timeline:
 
     ready_s: float | None = None
     mission_start_s: float | None = None
+    camera_on_s: float | None = None
     gnss_off_s: float | None = None
     gnss_on_s: float | None = None
     landed_s: float | None = None
@@ -167,12 +168,13 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         localizer = build_localizer(cfg, scenario.camera, scenario.T_body_cam, model)
         renderer = scenario.renderer
         vehicle.fly(route_deg, opts.altitude_m, opts.speed_mps, return_home=opts.max_flight_s is None)
-        tl.mission_start_s = t0 = truth.clock()
-        tl.add(t0, f"mission started ({len(route_deg)} waypoints, {opts.laps:g} laps of {opts.size_m:g} m at {opts.altitude_m:g} m)")
+        tl.mission_start_s = truth.clock()
+        tl.add(tl.mission_start_s, f"mission started ({len(route_deg)} waypoints, {opts.laps:g} laps of {opts.size_m:g} m at {opts.altitude_m:g} m)")
         gnss_name, gnss_off, gnss_on = sitl_bundle.GNSS_PARAM[opts.autopilot]
         vehicle.wait("cruising on the route", lambda: _cruising(truth), 60.0 / opts.speed)
-        tl.add(truth.clock(), "camera on: cruising on the route")
-        t_frame, seq, dropped = math.ceil(truth.clock() * opts.fps) / opts.fps, 0, 0
+        tl.camera_on_s = t0 = truth.clock()
+        tl.add(t0, "camera on: cruising on the route")
+        t_frame, seq, dropped = math.ceil(t0 * opts.fps) / opts.fps, 0, 0
         out_msg = opts.out.upper()
         wall_end = time.monotonic() + _wall_budget_s(opts)
         while time.monotonic() < wall_end:
@@ -291,7 +293,7 @@ def _in_probe_window(tl: Timeline, opts: SitlOptions, t_s: float) -> bool:
         return False
     end = tl.gnss_off_s + (opts.gnss_off_for_s if opts.gnss_off_for_s is not None else math.inf)
     if not math.isfinite(end):
-        end = tl.mission_start_s + (opts.max_flight_s or math.inf)
+        end = tl.camera_on_s + (opts.max_flight_s or math.inf)
     return end - 10.0 <= t_s < end
 
 
@@ -323,7 +325,7 @@ def _summary(run: RunLog, tl: Timeline, opts: SitlOptions, sitl, bridge, vehicle
     s["sitl"] = {
         "autopilot": opts.autopilot, "output": opts.out, "system_id": sitl.system_id, "speed": opts.speed,
         "boot_params": sitl.params, "fps": opts.fps, "frames_dropped": dropped,
-        "timeline": {k: getattr(tl, k) for k in ("ready_s", "mission_start_s", "gnss_off_s", "gnss_on_s", "landed_s")},
+        "timeline": {k: getattr(tl, k) for k in ("ready_s", "mission_start_s", "camera_on_s", "gnss_off_s", "gnss_on_s", "landed_s")},
         "events": tl.events,
         "takeover_after_gnss_off_s": (run.takeover_t_s - tl.gnss_off_s) if run.takeover_t_s is not None and tl.gnss_off_s is not None else None,
         "handback_after_gnss_on_s": (handback[0].t_s - tl.gnss_on_s) if handback else None,
