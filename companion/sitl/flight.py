@@ -89,6 +89,7 @@ class Timeline:
     camera_on_s: float | None = None
     gnss_off_s: float | None = None
     gnss_on_s: float | None = None
+    return_s: float | None = None
     landed_s: float | None = None
     events: list[tuple[float, str]] = field(default_factory=list)
 
@@ -167,7 +168,7 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         vehicle.take_off(opts.altitude_m, 120.0 / opts.speed)
         localizer = build_localizer(cfg, scenario.camera, scenario.T_body_cam, model)
         renderer = scenario.renderer
-        vehicle.fly(route_deg, opts.altitude_m, opts.speed_mps, return_home=opts.max_flight_s is None)
+        vehicle.fly(route_deg, opts.altitude_m, opts.speed_mps)
         tl.mission_start_s = truth.clock()
         tl.add(tl.mission_start_s, f"mission started ({len(route_deg)} waypoints, {opts.laps:g} laps of {opts.size_m:g} m at {opts.altitude_m:g} m)")
         gnss_name, gnss_off, gnss_on = sitl_bundle.GNSS_PARAM[opts.autopilot]
@@ -192,9 +193,13 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             # ---- the end: time's up, or landed after the mission
             if opts.max_flight_s is not None and now >= t0 + opts.max_flight_s:
                 break
-            if opts.max_flight_s is None and vehicle.mission_done() and not vehicle.in_air and now > t0 + 10.0:
+            if opts.max_flight_s is None and tl.return_s is None and vehicle.mission_done():
+                vehicle.return_home()
+                tl.return_s = truth.clock()
+                tl.add(tl.return_s, "mission done: return home and land")
+            if not vehicle.in_air and now > t0 + 5.0:  # on the ground: returned, or a failsafe landed it
                 tl.landed_s = now
-                tl.add(now, "landed")
+                tl.add(now, "landed" if tl.return_s is not None else f"landed before the mission's end (mode {vehicle.mode()})")
                 break
             # ---- the camera: the next frame due, rendered from the truth at its time
             if not truth.wait_until(t_frame, timeout_s=5.0):
@@ -325,7 +330,7 @@ def _summary(run: RunLog, tl: Timeline, opts: SitlOptions, sitl, bridge, vehicle
     s["sitl"] = {
         "autopilot": opts.autopilot, "output": opts.out, "system_id": sitl.system_id, "speed": opts.speed,
         "boot_params": sitl.params, "fps": opts.fps, "frames_dropped": dropped,
-        "timeline": {k: getattr(tl, k) for k in ("ready_s", "mission_start_s", "camera_on_s", "gnss_off_s", "gnss_on_s", "landed_s")},
+        "timeline": {k: getattr(tl, k) for k in ("ready_s", "mission_start_s", "camera_on_s", "gnss_off_s", "gnss_on_s", "return_s", "landed_s")},
         "events": tl.events,
         "takeover_after_gnss_off_s": (run.takeover_t_s - tl.gnss_off_s) if run.takeover_t_s is not None and tl.gnss_off_s is not None else None,
         "handback_after_gnss_on_s": (handback[0].t_s - tl.gnss_on_s) if handback else None,
@@ -335,7 +340,7 @@ def _summary(run: RunLog, tl: Timeline, opts: SitlOptions, sitl, bridge, vehicle
         "failsafes": vehicle.log.failsafes(),
         "flight_modes": vehicle.log.modes,
         "autopilot_texts": vehicle.log.texts[-40:],
-        "mission_completed": vehicle.mission_done(),
+        "mission_completed": tl.return_s is not None or vehicle.mission_done(),
         "landed_from_home_m": landed_from_home,
         "source_switch": st.source_switch,
         "bridge_sent": dict(st.sent),

@@ -132,14 +132,14 @@ class Vehicle:
                   lambda: home_alt is not None and self.position() is not None and self.position()[3] - home_alt >= 0.9 * rel_alt_m,
                   timeout_wall_s, idle)
 
-    def fly(self, waypoints_deg: list[tuple[float, float]], rel_alt_m: float, speed_mps: float, return_home: bool = True) -> None:
-        """Upload ``waypoints_deg`` (lat, lon) at ``rel_alt_m`` above home and start the mission; with
-        ``return_home`` the vehicle returns and lands when it ends."""
+    def fly(self, waypoints_deg: list[tuple[float, float]], rel_alt_m: float, speed_mps: float) -> None:
+        """Upload ``waypoints_deg`` (lat, lon) at ``rel_alt_m`` above home and start the mission. (The
+        return home is commanded when it ends, ``return_home``: MAVSDK's return-after-mission item
+        makes ArduPilot refuse the upload, INVALID_ARGUMENT.)"""
         from mavsdk.plugins.mission import MissionItem, MissionPlan
 
         items = [MissionItem(latitude_deg=lat, longitude_deg=lon, relative_altitude_m=rel_alt_m, speed_m_s=speed_mps,
                              is_fly_through=True, acceptance_radius_m=5.0) for lat, lon in waypoints_deg]
-        self.mission.set_return_to_launch_after_mission(return_home)
         self.mission.upload_mission(MissionPlan(items))
         # PX4 may refuse the mission mode for a moment after an upload ("Switching to Mission is
         # currently not available") while answering the command: believe the flight mode it reports
