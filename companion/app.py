@@ -239,7 +239,7 @@ def fly_sim(cfg: AppConfig, steps: Iterable, n_frames: int, camera: CameraModel,
                 run.truth_cam_ecef_m[rec.seq] = truth.p_ecef_m
                 est = ap.estimate()
                 if est.valid:
-                    run.autopilot_err_m.append((step.frame.t_s, _horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
+                    run.autopilot_err_m.append((step.frame.t_s, horizontal_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg), est.source))
             a = localizer.alignment
             if a is not None and (not alignments or a is not alignments[-1]):
                 alignments.append(a)
@@ -344,7 +344,8 @@ def _wait_delivered(bridge, ap, t_s: float, timeout_s: float):
         time.sleep(0.001)
 
 
-def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
+def horizontal_m(lat1, lon1, lat2, lon2) -> float:
+    """Horizontal distance (m) of point 1 from point 2, WGS-84 degrees."""
     ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
     return float(np.hypot(ned[0], ned[1]))
 

@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from companion.app import build_localizer
+from companion.app import build_localizer, horizontal_m
 from companion.config import AppConfig
 from companion.evaluate import write_report
 from companion.pipeline import PipelineInput, attitude_prior
@@ -117,11 +117,6 @@ def T_enu_body(origin: LocalFrame, s: TruthState) -> np.ndarray:
 
 def body_ecef(origin: LocalFrame, s: TruthState) -> np.ndarray:
     return origin.enu_to_ecef(T_enu_body(origin, s)[:3, 3])
-
-
-def _horizontal_m(lat1, lon1, lat2, lon2) -> float:
-    ned = LocalFrame(lat2, lon2, 0.0).geodetic_to_ned(lat1, lon1, 0.0)
-    return float(np.hypot(ned[0], ned[1]))
 
 
 def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOptions = SitlOptions(),
@@ -232,7 +227,7 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             est = vehicle.position()
             if est is not None:
                 s_est = truth.at(est[0]) or truth.latest()
-                run.autopilot_err_m.append((est[0], _horizontal_m(est[1], est[2], s_est.lat_deg, s_est.lon_deg), "ekf"))
+                run.autopilot_err_m.append((est[0], horizontal_m(est[1], est[2], s_est.lat_deg, s_est.lon_deg), "ekf"))
             if progress is not None:
                 progress(t_frame - t0, f"{bridge.state.value} {rec.pose.state.value}")
             seq += 1
@@ -325,7 +320,7 @@ def _summary(run: RunLog, tl: Timeline, opts: SitlOptions, sitl, bridge, vehicle
         jump = float(np.max(np.abs(np.diff(around)))) if len(around) > 1 else None
     landed_from_home = None
     if final is not None and tl.landed_s is not None:
-        landed_from_home = _horizontal_m(final.lat_deg, final.lon_deg, home.lat_deg, home.lon_deg)
+        landed_from_home = horizontal_m(final.lat_deg, final.lon_deg, home.lat_deg, home.lon_deg)
     st = bridge.stats()
     s["sitl"] = {
         "autopilot": opts.autopilot, "output": opts.out, "system_id": sitl.system_id, "speed": opts.speed,
