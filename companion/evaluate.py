@@ -139,6 +139,31 @@ def fix_errors(fixes: list[GlobalFix], truth_ecef_m: np.ndarray, ref_h_acc_m: np
     return FixErrors(np.array([f.t_s for f in fixes]), err_ned, np.array([f.h_acc_m for f in fixes]), ref)
 
 
+def velocity_errors(fixes: list[GlobalFix], truth_t_s: np.ndarray, truth_ecef_m: np.ndarray, max_dt_s: float = 0.25) -> dict:
+    """How far each fix's NED velocity is from the truth's, and whether its speed accuracy covers
+    it. The truth's velocity at a fix is the central difference of the truth positions
+    (``truth_t_s`` ascending, (N, 3) ECEF) either side of the one at the fix's time, at most
+    ``max_dt_s`` from it; fixes without a velocity, or without truth there, are left out. beyond_3sigma_ratio: fixes
+    with a horizontal component beyond 3 × speed_acc_mps (the EKFs fuse each axis with it)."""
+    t = np.asarray(truth_t_s, float)
+    truth = np.asarray(truth_ecef_m, float).reshape(-1, 3)
+    err, z = [], []
+    for f in fixes:
+        if f.v_ned_mps is None or f.speed_acc_mps is None:
+            continue
+        i = int(np.searchsorted(t, f.t_s))
+        if not 1 <= i < len(t) - 1 or abs(t[i] - f.t_s) > 1e-6 or t[i + 1] - t[i - 1] > 2 * max_dt_s:
+            continue
+        lat, lon, _ = ecef_to_geodetic(truth[i])
+        e_enu = (truth[i + 1] - truth[i - 1]) / (t[i + 1] - t[i - 1]) @ R_ecef_enu(float(lat), float(lon))
+        e = np.asarray(f.v_ned_mps, float)[:2] - (e_enu[1], e_enu[0])
+        err.append(float(np.hypot(*e)))
+        z.append(float(np.max(np.abs(e))) / f.speed_acc_mps)
+    z_arr = np.array(z)
+    return {"n": len(err), "horizontal_error_mps": stats(np.array(err)),
+            "beyond_3sigma_ratio": float(np.mean(z_arr > 3.0)) if z else None}
+
+
 FIX_COLUMNS = ("t_s", "lat_deg", "lon_deg", "h_ellipsoid_m", "h_msl_m", "h_acc_m", "v_acc_m", "source")
 
 

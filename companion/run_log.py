@@ -10,7 +10,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.evaluate import FixErrors, fix_errors, stats, write_csv, write_geojson, write_report, write_tum
+from companion.evaluate import (
+    FixErrors,
+    fix_errors,
+    stats,
+    velocity_errors,
+    write_csv,
+    write_geojson,
+    write_report,
+    write_tum,
+)
 from companion.pipeline import FrameRecord
 from gis.align.fine import ScaleCheck
 
@@ -74,6 +83,7 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "takeover_t_s": run.takeover_t_s,
         "all_fixes": errs.summary(),
         "after_takeover": errs_after.summary(),
+        "velocity_after_takeover": velocity_errors(after, *_truth_track(run)),
         "frame_latency_ms": stats(np.array(run.wall_track_ms)),
         "camera_to_wire_ms": stats(np.array(run.camera_to_wire_ms)),
         "finetune_ms": stats(np.array(run.finetune_ms)),
@@ -86,6 +96,12 @@ def summarize(run: RunLog, *, name: str) -> dict:
         "alignment_events": run.alignment_events,
         **denial,
     }
+
+
+def _truth_track(run: RunLog) -> tuple[np.ndarray, np.ndarray]:
+    """The truth positions (ECEF) at the frames' times, in time order."""
+    pairs = sorted((r.t_s, run.truth_ecef_m[r.seq]) for r in run.records if r.seq in run.truth_ecef_m)
+    return np.array([t for t, _ in pairs]), np.array([p for _, p in pairs]).reshape(-1, 3)
 
 
 def _ratio_summary(checks: list[ScaleCheck]) -> dict:

@@ -8,7 +8,8 @@ T_rough), the GIS model's georeference accuracy
 (model_sigma_m, for GIS-based alignments; the Localizer replaces it with the correction's σ when
 the model is found metres off against GNSS, gis.align.georef), recent jumps of the SLAM track (below) and a floor. No
 fix when tracking has no pose, no alignment was accepted, or the alignment belongs to another
-SLAM map (reset_counter / map_id).
+SLAM map (reset_counter / map_id). The fix's velocity is a fit to the last second of fixes
+(gis.fix_velocity), its speed accuracy the fit's σ with velocity_sigma_floor_mps added.
 
 SLAM jumps (beyond the papers): when local mapping refreshes the points the tracker follows, the
 pose can jump by metres in one frame, and the track before such a jump was off by about as much.
@@ -37,6 +38,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gis import fix_velocity
 from gis.config import AlignmentConfig
 from gis.geodesy import R_NED_ENU, LocalFrame, ecef_to_geodetic, ellipsoid_to_msl
 from gis.types import Alignment, AlignmentSource, GlobalFix
@@ -49,12 +51,13 @@ UNANCHOR_SIGMAS = 3.0   # a jump beyond this many of the alignment's own horizon
 
 class Globalizer:
     def __init__(self, T_body_cam: np.ndarray, slam_drift_fraction: float = 0.01, sigma_floor_m: float = 0.05,
-                 model_sigma_m: float = 0.25, max_velocity_dt_s: float = 1.0) -> None:
+                 model_sigma_m: float = 0.25, max_velocity_dt_s: float = 1.0, velocity_sigma_floor_mps: float = 0.3) -> None:
         self.T_cam_body = np.linalg.inv(np.asarray(T_body_cam, float))
         self.slam_drift_fraction = slam_drift_fraction
         self.sigma_floor_m = sigma_floor_m
         self.model_sigma_m = model_sigma_m
         self.max_velocity_dt_s = max_velocity_dt_s
+        self.velocity_sigma_floor_mps = velocity_sigma_floor_mps
         self._lock = threading.Lock()
         self._alignment: Alignment | None = None
         self._cov_center: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -66,11 +69,15 @@ class Globalizer:
         self._unanchored = False                         # no decay: a jump beyond 3× the alignment's σ since it was adopted
         self._reanchored = False                         # a new alignment since: release at the next fix
         self._unanchoring_jump_m = 0.0                   # the jump that set _unanchored
+        # (t_s, ECEF body position, segment, (reset_counter, map_id)) of the last second's fixes (velocity)
+        self._track: list[tuple[float, np.ndarray, int, tuple[int, int]]] = []
+        self._new_segment = False                        # a new alignment since the last fix
 
     @classmethod
     def from_config(cls, T_body_cam: np.ndarray, config: AlignmentConfig) -> "Globalizer":
         """With the fix-covariance terms of the ``alignment`` config section."""
-        return cls(T_body_cam, config.slam_drift_fraction, config.sigma_floor_m, config.model_sigma_m)
+        return cls(T_body_cam, config.slam_drift_fraction, config.sigma_floor_m, config.model_sigma_m,
+                   velocity_sigma_floor_mps=config.velocity_sigma_floor_mps)
 
     @property
     def alignment(self) -> Alignment | None:
@@ -83,6 +90,7 @@ class Globalizer:
             self._cov_center = None
             self._prev = None
             self._v_ecef = None
+            self._track.clear()
             self._jump = (0.0, 0.0)
             self._unanchored = self._reanchored = False
 
@@ -132,6 +140,7 @@ class Globalizer:
             if prev is not None and follows is not None and prev[2] is follows:
                 self._prev = (*prev[:2], a, *prev[3:])  # the same alignment, carried along: fixes continuous
                 return
+            self._new_segment = True  # the velocity track: the new alignment's shift is not motion
             if prev is not None:  # a new alignment: the previous pose placed with it (or with the one it was carried from)
                 self._prev = (prev[0], self._place(follows if follows is not None else a, prev[3]), a, *prev[3:])
             if self._unanchored:  # a new alignment: the jump's term decays from the next fix on
@@ -163,7 +172,8 @@ class Globalizer:
                 self._unanchoring_jump_m = now_m
         cov_ned = cov_ned + jump_m ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
-        v_ned, speed_acc = self._velocity(step, R_ned_ecef)
+        with self._lock:
+            v_ned, speed_acc = self._track_velocity(pose.t_s, p, (pose.reset_counter, pose.map_id), R_ned_ecef)
         return GlobalFix(
             t_s=pose.t_s, seq=pose.seq, p_ecef_m=p, lat_deg=lat, lon_deg=lon, h_ellipsoid_m=h,
             h_msl_m=float(ellipsoid_to_msl(lat, lon, h)), cov_ned_m2=cov_ned,
@@ -234,16 +244,29 @@ class Globalizer:
         held = self._hold_jumps or self._unanchored
         return j_m if held else j_m * math.exp(-max(t_s - t_j, 0.0) / JUMP_MEMORY_S)
 
-    def _velocity(self, step: tuple[float, np.ndarray] | None, R_ned_ecef: np.ndarray):
-        """NED velocity and its 1-σ from _step's fix-to-fix difference (None, None without one)."""
-        if step is None:
+    def _track_velocity(self, t_s: float, p: np.ndarray, slam_map: tuple[int, int], R_ned_ecef: np.ndarray):
+        """NED velocity and its 1-σ at this fix from the last second's fixes (gis.fix_velocity),
+        (None, None) until there are enough. The track restarts on another SLAM map or after a gap;
+        a new alignment (not one carried along with its map) or a SLAM jump starts a new segment."""
+        track = self._track
+        if track and (track[-1][3] != slam_map or not 0 < t_s - track[-1][0] <= self.max_velocity_dt_s):
+            track.clear()
+        while track and t_s - track[0][0] > fix_velocity.MAX_WINDOW_S:
+            track.pop(0)
+        seg = track[-1][2] if track else 0
+        track.append((t_s, p, seg, slam_map))
+        used = track[fix_velocity.window_start(np.array([e[0] for e in track])):]
+        t = np.array([e[0] for e in used])
+        ned = (np.array([e[1] for e in used]) - p) @ R_ned_ecef.T
+        segment = np.array([e[2] for e in used])
+        if len(used) > 1 and (self._new_segment or fix_velocity.breaks(t[:-1], ned[:-1], segment[:-1], t_s, ned[-1])):
+            segment[-1] = seg + 1
+            track[-1] = (t_s, p, seg + 1, slam_map)
+        self._new_segment = False
+        fit = fix_velocity.fit_velocity(t, ned, segment)
+        if fit is None:
             return None, None
-        dt, v_ecef = step
-        v = R_ned_ecef @ v_ecef
-        # Both ends share the alignment, so only the SLAM-relative error between them counts:
-        # the drift fraction of the distance moved, and the floor, per end.
-        rel = np.hypot(self.slam_drift_fraction * np.linalg.norm(v) * dt, self.sigma_floor_m / 10)
-        return v, float(np.sqrt(2) * rel / dt)
+        return fit.v_ned_mps, float(np.hypot(fit.sigma_mps, self.velocity_sigma_floor_mps))
 
 
 def with_horizontal_floor(fix: GlobalFix, sigma_h_m: float) -> GlobalFix:

@@ -107,6 +107,7 @@ class Bridge:
         self._origin: LocalFrame | None = None
         self._q_ned_body: np.ndarray | None = None
         self._attitude: VehicleAttitude | None = None
+        self._estimate: tuple[float, float, float, float] | None = None  # GLOBAL_POSITION_INT (boot s, lat, lon, MSL m)
         self._baro: tuple[float, float] | None = None  # (bridge clock s, ALTITUDE.altitude_monotonic m)
         self._last_emit_s = -math.inf
         self._last_fix_s: float | None = None   # clock time of the last fix we wrote
@@ -194,6 +195,12 @@ class Bridge:
         with self._lock:
             a = self._attitude
         return a if a is not None and self.clock() - a.t_s <= max_age_s else None
+
+    def autopilot_estimate(self) -> tuple[float, float, float, float] | None:
+        """The autopilot's own latest position estimate (GLOBAL_POSITION_INT): (its boot time in s,
+        lat_deg, lon_deg, alt MSL m), stamped by the autopilot, or None before the first."""
+        with self._lock:
+            return self._estimate
 
     def events(self) -> list[SwitchEvent]:
         with self._lock:
@@ -331,6 +338,9 @@ class Bridge:
             if math.isfinite(msg.press_abs) and msg.press_abs > 0:
                 with self._lock:
                     self._baro = (now, pressure_altitude_m(msg.press_abs))
+        elif t == "GLOBAL_POSITION_INT":
+            with self._lock:
+                self._estimate = (msg.time_boot_ms / 1000.0, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt / 1000.0)
         elif t == "GPS_GLOBAL_ORIGIN":
             self._on_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude / 1000.0)
         elif t == "SYSTEM_TIME":
@@ -396,7 +406,8 @@ class Bridge:
         interval_us = lambda hz: 1e6 / hz  # noqa: E731
         streams = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self.cfg.gnss_stream_hz,
                    mavlink.MAVLINK_MSG_ID_GPS2_RAW: self.cfg.gnss_stream_hz,
-                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
+                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+                   mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0}  # the autopilot's estimate (status, flight reports)
         if self.cfg.autopilot == "ardupilot":
             streams[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = 2.0
             streams[mavlink.MAVLINK_MSG_ID_SCALED_PRESSURE] = 5.0   # the barometer

@@ -60,28 +60,28 @@ def _gps_week(unix_s: float) -> tuple[int, int]:
 
 
 def gps_input(mav: mavlink.MAVLink, fix: GlobalFix | None, cfg: MavlinkConfig, unix_s: float | None = None):
-    """ArduPilot GPS_INPUT. ``fix`` None or untrustworthy → fix_type NO_FIX, 0 satellites."""
+    """ArduPilot GPS_INPUT. ``fix`` None or untrustworthy → fix_type NO_FIX, 0 satellites.
+
+    A fix without a velocity (or its accuracy) is not sent (None): ArduPilot's MAVLink GPS keeps
+    the previous message's velocity and speed accuracy when the ignore flags are set, and its EKF
+    fuses GPS velocity whenever EK3_SRCn_VELXY is GPS, so a flagged message would be fused with a
+    stale velocity."""
     week, week_ms = _gps_week(time.time() if unix_s is None else unix_s)
     if fix is None or not trustworthy(fix, cfg):
         return mav.gps_input_encode(0, cfg.gps_id, 0, week_ms, week, 1, 0, 0, 0.0, 99.99, 99.99,
                                     0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0)
-    ignore = 0
-    if fix.v_ned_mps is None:
-        ignore |= mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT
-        vn = ve = vd = 0.0
-    else:
-        vn, ve, vd = (float(v) for v in fix.v_ned_mps)
-    if fix.speed_acc_mps is None:
-        ignore |= mavlink.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+    if fix.v_ned_mps is None or fix.speed_acc_mps is None:
+        return None
+    vn, ve, vd = (float(v) for v in fix.v_ned_mps)
     # HDOP/VDOP are dimensionless; we have no satellite geometry, so express our 1-σ accuracy in the
     # same units with a nominal range error (h_acc 5 m → HDOP 2.5, both EKF3 pre-use limits).
     hdop = min(max(fix.h_acc_m / cfg.uere_m, 0.5), 99.99)
     vdop = min(max(fix.v_acc_m / cfg.uere_m, 0.5), 99.99)
     yaw_cdeg = 0 if fix.yaw_deg is None else (round(fix.yaw_deg * 100) % 36000 or 36000)  # 0 = none, 36000 = north
     return mav.gps_input_encode(
-        int(fix.t_s * 1e6), cfg.gps_id, ignore, week_ms, week, 3,
+        int(fix.t_s * 1e6), cfg.gps_id, 0, week_ms, week, 3,
         round(fix.lat_deg * 1e7), round(fix.lon_deg * 1e7), float(fix.h_msl_m),
-        hdop, vdop, vn, ve, vd, float(fix.speed_acc_mps or 0.0), float(fix.h_acc_m), float(fix.v_acc_m),
+        hdop, vdop, vn, ve, vd, float(fix.speed_acc_mps), float(fix.h_acc_m), float(fix.v_acc_m),
         cfg.reported_satellites, yaw_cdeg,
     )
 

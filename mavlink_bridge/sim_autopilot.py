@@ -16,7 +16,7 @@ Personality rules (docs/AUTOPILOTS.md):
   EKF2_GPS_CTRL=0 stops GNSS fusion; dead-reckons 6 s after losing every source; streams by default.
 - ardupilot: GPS_INPUT only to a GPSx_TYPE=14 instance whose index equals gps_id; MAVLink GPS
   unhealthy below 5 Hz (mean gap ≥ 215 ms), NO_FIX after 4 s silence; EKF3 pre-use checks (HDOP,
-  satellites, accuracies); primary by GPS_AUTO_SWITCH / GPS_PRIMARY; ExternalNav (VPE, or ODOMETRY
+  satellites, accuracies) only before it aids with an absolute position; primary by GPS_AUTO_SWITCH / GPS_PRIMARY; ExternalNav (VPE, or ODOMETRY
   only LOCAL_FRD/BODY_FRD) at most one sample per 20 ms, used when the active EK3 source set has
   POSXY=6; SET_GPS_GLOBAL_ORIGIN dropped before the EKF starts and accepted once; streams only what
   is requested with SET_MESSAGE_INTERVAL.
@@ -240,8 +240,10 @@ class SimAutopilot:
             cm(s.eph), cm(s.epv), vel, cog, s.satellites, mm(s.h_ellipsoid_m), mm(s.h_acc_m), mm(s.v_acc_m), 0, 0, 0)
 
     # ---- ArduPilot GPS instances -----------------------------------------------------------
-    def _mgps_usable(self, now: float) -> tuple[int, str | None]:
-        """(effective fix type, why unusable) of the MAVLink GPS."""
+    def _mgps_usable(self, now: float, aiding: bool = False) -> tuple[int, str | None]:
+        """(effective fix type, why unusable) of the MAVLink GPS. ``aiding``: the EKF already fuses
+        an absolute position; EKF3's pre-use checks (calcGpsGoodToAlign) gate only the origin and
+        the start of GPS aiding, not a GPS it fuses in flight."""
         m = self._mgps
         if m is None or now - m["t"] > MAVGPS_TIMEOUT_S:
             return 0, "no GPS_INPUT for 4 s"
@@ -250,6 +252,8 @@ class SimAutopilot:
             return 0, "MAVLink GPS unhealthy: rate below 5 Hz"
         if m["fix"] < 3:
             return m["fix"], "no 3D fix"
+        if aiding:
+            return m["fix"], None
         checks = [(m["hdop"] > 2.5, "hdop > 2.5"), (m["sats"] < 6, "< 6 satellites"),
                   (not m["ign"] & mavlink.GPS_INPUT_IGNORE_FLAG_HORIZONTAL_ACCURACY and m["hacc"] > 5.0, "horiz_accuracy > 5 m"),
                   (not m["ign"] & mavlink.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY and m["vacc"] > 7.5, "vert_accuracy > 7.5 m"),
@@ -288,7 +292,8 @@ class SimAutopilot:
             if posxy == 3:
                 mavgps = 0 if self.params["GPS1_TYPE"] == 14 else 1
                 if self._ap_primary(now) == mavgps:
-                    _, why = self._mgps_usable(now)
+                    aiding = self._last_est is not None and (self._lost_since is None or now - self._lost_since <= AP_DEAD_RECKON_S)
+                    _, why = self._mgps_usable(now, aiding)
                     m = self._mgps
                     if why is None:
                         src, pos = "mavlink_gps", _Pos(m["t"], m["lat"], m["lon"], m["alt"])

@@ -147,8 +147,8 @@ def test_gps_input_fields_and_no_fix():
     for f in (None, bad):
         m = wire(emitters.gps_input(MAV, f, cfg))
         assert m.fix_type < 3 and m.satellites_visible == 0
-    m = wire(emitters.gps_input(MAV, FLIGHT.fix(5.0, 2.0, with_velocity=False), cfg))
-    assert m.ignore_flags & mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ and m.ignore_flags & mavlink.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+    # no velocity: not sent (ArduPilot would fuse the previous message's velocity for an ignored one)
+    assert emitters.gps_input(MAV, FLIGHT.fix(5.0, 2.0, with_velocity=False), cfg) is None
 
 
 def test_px4_profile_refuses_gps_input():

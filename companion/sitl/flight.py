@@ -224,9 +224,9 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             run.records.append(rec)
             run.truth_ecef_m[rec.seq] = body_ecef(origin, state)
             run.truth_cam_ecef_m[rec.seq] = origin.enu_to_ecef(T_enu_cam[:3, 3])
-            est = vehicle.position()
-            if est is not None:
-                s_est = truth.at(est[0]) or truth.latest()
+            est = bridge.autopilot_estimate()  # stamped with the autopilot's boot time, the truth's clock
+            s_est = truth.at(est[0]) if est is not None else None
+            if s_est is not None and (not run.autopilot_err_m or est[0] > run.autopilot_err_m[-1][0]):
                 run.autopilot_err_m.append((est[0], horizontal_m(est[1], est[2], s_est.lat_deg, s_est.lon_deg), "ekf"))
             if progress is not None:
                 progress(t_frame - t0, f"{bridge.state.value} {rec.pose.state.value}")
