@@ -52,6 +52,7 @@ def sitl(
     laps: float = typer.Option(1.75, "--laps", help="laps of the 200 m square over the city (mission, then return and land)"),
     max_flight: Optional[float] = typer.Option(None, "--max-flight", help="end this many seconds after the camera starts instead of landing"),
     offset_probe: float = typer.Option(0.0, "--offset-probe", help="metres east added to our fixes over the denial's last 10 s: does the autopilot follow them?"),
+    spoof: float = typer.Option(0.0, "--spoof", help="instead of switching GNSS off, move the SITL receiver this many metres north (ArduPilot: SIM_GPS1_GLTCH_X) for --gnss-off-for seconds"),
     seed: int = typer.Option(0, "--seed", help="the simulated city"),
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
@@ -65,7 +66,7 @@ def sitl(
     try:
         opts = SitlOptions(autopilot=autopilot, output=output, seed=seed, speed=speed, laps=laps,
                            gnss_off_after_s=gnss_off_after, gnss_off_for_s=gnss_off_for or None,
-                           max_flight_s=max_flight, offset_probe_m=offset_probe)
+                           max_flight_s=max_flight, offset_probe_m=offset_probe, spoof_m=spoof)
     except (ValueError, SitlError) as e:
         fail(str(e))
     cfg = _load(config)

@@ -180,7 +180,7 @@ class Globalizer:
             h_acc_m=float(np.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1])), v_acc_m=float(np.sqrt(cov_ned[2, 2])),
             source=a.source, v_ned_mps=v_ned, speed_acc_mps=speed_acc,
             yaw_deg=float(np.degrees(np.arctan2(R_ned_body[1, 0], R_ned_body[0, 0])) % 360.0),
-            q_ned_body=np.array([w, x, y, z]), reset_counter=pose.reset_counter,
+            q_ned_body=np.array([w, x, y, z]), reset_counter=pose.reset_counter, anchored=not self._unanchored,
         )
 
     def _cov_ned(self, p_ecef: np.ndarray, a: Alignment, cc, R_ned_ecef: np.ndarray) -> np.ndarray:

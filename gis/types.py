@@ -76,6 +76,9 @@ class GlobalFix:
     clockwise from true north in [0, 360), or None. q_ned_body: (w, x, y, z) attitude of the body
     FRD frame in NED, or None. cov_ned_m2: 3x3 position covariance in NED (m²); h_acc_m / v_acc_m
     are the 1-σ horizontal / vertical accuracies derived from it (what GPS_INPUT reports).
+    anchored: False while the SLAM track has jumped past 3× its alignment's σ and no alignment has
+    re-anchored it since (gis.globalizer, ``unanchored``): the σ covers the fix, but the fix is
+    no reference to judge GNSS by.
     """
 
     t_s: float
@@ -94,6 +97,7 @@ class GlobalFix:
     yaw_deg: float | None = None
     q_ned_body: np.ndarray | None = None
     reset_counter: int = 0
+    anchored: bool = True
 
     @property
     def R_ned_body(self) -> np.ndarray | None:

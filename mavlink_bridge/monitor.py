@@ -124,7 +124,11 @@ class SpoofDetector:
 
     Normalised horizontal distance d/σ with σ = sqrt(h_acc_gnss² + h_acc_vision²), the vision fix
     propagated to the GNSS time with its velocity. Disagreement (> spoof_sigma) persisting
-    spoof_persist_s flags spoofing; agreement persisting as long clears it.
+    spoof_persist_s flags spoofing; agreement persisting as long clears it. A fix that is not
+    ``anchored`` (our SLAM track jumped and nothing re-anchored it yet) is no reference: the test
+    pauses and its verdict holds. In a `terraslam sitl` flight, GNSS good, the track jumped 5.3 m,
+    no GNSS fit re-anchored it for 14 s while the map's scale broke (15 %), and the test took the
+    good GNSS for spoofed; the takeover put ArduPilot on our fixes and its EKF failsafed.
     """
 
     cfg: SwitchingConfig
@@ -134,7 +138,7 @@ class SpoofDetector:
 
     def update(self, sample: GnssSample, fix: GlobalFix, uere_m: float) -> None:
         dt = sample.t_s - fix.t_s
-        if abs(dt) > self.cfg.spoof_max_dt_s or sample.fix_type < GpsFixType.FIX_3D:
+        if abs(dt) > self.cfg.spoof_max_dt_s or sample.fix_type < GpsFixType.FIX_3D or not fix.anchored:
             return
         frame = LocalFrame(fix.lat_deg, fix.lon_deg, fix.h_ellipsoid_m)
         h = sample.h_ellipsoid_m if math.isfinite(sample.h_ellipsoid_m) else fix.h_ellipsoid_m

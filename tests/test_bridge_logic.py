@@ -85,6 +85,25 @@ def test_spoofing_flagged_only_for_persistent_disagreement():
     assert "spoofing" in " ".join(mon.status(8.0).reasons)
 
 
+def test_an_unanchored_fix_is_no_reference_for_the_spoofing_test():
+    """Our SLAM track jumped and nothing re-anchored it (GlobalFix.anchored False): 10 m between
+    it and GNSS for 5 s is not taken for spoofing; once it is anchored again, it is."""
+    from dataclasses import replace
+
+    cfg = SwitchingConfig(spoof_sigma=3.0, spoof_persist_s=2.0)
+    mon = GnssMonitor(cfg)
+    for k in range(50):
+        t = k * 0.1
+        mon.on_fix(replace(FLIGHT.fix(t, t), anchored=False))
+        mon.on_sample(FLIGHT.gnss(t + 0.02, t + 0.02, offset_ned_m=(0.0, 10.0, 0.0)))
+    assert mon.status(5.0).quality is GnssQuality.GOOD
+    for k in range(50, 80):
+        t = k * 0.1
+        mon.on_fix(FLIGHT.fix(t, t))
+        mon.on_sample(FLIGHT.gnss(t + 0.02, t + 0.02, offset_ned_m=(0.0, 10.0, 0.0)))
+    assert mon.status(8.0).quality is GnssQuality.UNTRUSTED
+
+
 def test_ekf_glitch_and_fix_flapping_mark_untrusted():
     cfg = SwitchingConfig(jamming_flips=3, jamming_window_s=10.0)
     mon = GnssMonitor(cfg)

@@ -42,6 +42,10 @@ COMMON = {
 GNSS_DELAY_S = {"ardupilot": 0.1, "px4": 0.0}
 #: GNSS off / on with the SITL's own receiver switch (docs/AUTOPILOTS.md)
 GNSS_PARAM = {"ardupilot": ("SIM_GPS1_ENABLE", 0, 1), "px4": ("SIM_GPS_USED", 0, 10)}
+#: A spoof: the SITL receiver's position moved north, in degrees of latitude (ArduPilot SIM_GPS1_GLTCH_X
+#: adds it to the receiver's latitude). PX4 SIH's simulated receiver has no such offset.
+SPOOF_PARAM = {"ardupilot": "SIM_GPS1_GLTCH_X"}
+M_PER_DEG_LAT = 111_132.0  # metres per degree of latitude at mid latitudes (a spoof's size, ±0.5 %)
 
 
 class SitlError(RuntimeError):

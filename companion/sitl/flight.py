@@ -64,6 +64,7 @@ class SitlOptions:
     gnss_off_for_s: float | None = 120.0  # None: GNSS stays off to the end
     max_flight_s: float | None = None    # end this long after the camera starts (None: fly to the landing)
     offset_probe_m: float = 0.0          # add this much east to our fixes over the denial's last 10 s (is the EKF following us?)
+    spoof_m: float = 0.0                 # instead of switching GNSS off, move the SITL receiver this far north (a spoof)
     instance: int = 0
 
     def __post_init__(self):
@@ -74,6 +75,8 @@ class SitlOptions:
         if not 1.0 <= self.fps <= 30.0:
             raise ValueError(f"fps must be in [1, 30], got {self.fps}")
         sitl_bundle.boot_params(self.autopilot, self.out)  # raises for an output without a SITL set-up
+        if self.spoof_m and self.autopilot not in sitl_bundle.SPOOF_PARAM:
+            raise ValueError(f"no spoof for {self.autopilot}: its SITL receiver has no position offset parameter")
 
     @property
     def out(self) -> str:
@@ -167,6 +170,8 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         tl.mission_start_s = truth.clock()
         tl.add(tl.mission_start_s, f"mission started ({len(route_deg)} waypoints, {opts.laps:g} laps of {opts.size_m:g} m at {opts.altitude_m:g} m)")
         gnss_name, gnss_off, gnss_on = sitl_bundle.GNSS_PARAM[opts.autopilot]
+        if opts.spoof_m:  # the receiver keeps its fix but moves: "off" is the offset, "on" none
+            gnss_name, gnss_off, gnss_on = sitl_bundle.SPOOF_PARAM[opts.autopilot], opts.spoof_m / sitl_bundle.M_PER_DEG_LAT, 0.0
         vehicle.wait("cruising on the route", lambda: _cruising(truth), 60.0 / opts.speed)
         tl.camera_on_s = t0 = truth.clock()
         tl.add(t0, "camera on: cruising on the route")
@@ -177,12 +182,14 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             now = truth.clock()
             # ---- GNSS off / on with the SITL's own command, at their SITL times
             if tl.gnss_off_s is None and now >= t0 + opts.gnss_off_after_s:
-                vehicle.set_param(gnss_name, gnss_off)
+                set_param = vehicle.set_param_float if opts.spoof_m else vehicle.set_param
+                set_param(gnss_name, gnss_off)
                 tl.gnss_off_s = truth.clock()
-                tl.add(tl.gnss_off_s, f"GNSS off ({gnss_name}={gnss_off})")
+                tl.add(tl.gnss_off_s, f"GNSS spoofed {opts.spoof_m:+g} m north ({gnss_name}={gnss_off:.7f})" if opts.spoof_m
+                       else f"GNSS off ({gnss_name}={gnss_off})")
             if (tl.gnss_off_s is not None and tl.gnss_on_s is None and opts.gnss_off_for_s is not None
                     and now >= tl.gnss_off_s + opts.gnss_off_for_s):
-                vehicle.set_param(gnss_name, gnss_on)
+                (vehicle.set_param_float if opts.spoof_m else vehicle.set_param)(gnss_name, gnss_on)
                 tl.gnss_on_s = truth.clock()
                 tl.add(tl.gnss_on_s, f"GNSS on ({gnss_name}={gnss_on})")
             # ---- the end: time's up, or landed after the mission
@@ -324,6 +331,7 @@ def _summary(run: RunLog, tl: Timeline, opts: SitlOptions, sitl, bridge, vehicle
     st = bridge.stats()
     s["sitl"] = {
         "autopilot": opts.autopilot, "output": opts.out, "system_id": sitl.system_id, "speed": opts.speed,
+        "spoof_m": opts.spoof_m,
         "boot_params": sitl.params, "fps": opts.fps, "frames_dropped": dropped,
         "timeline": {k: getattr(tl, k) for k in ("ready_s", "mission_start_s", "camera_on_s", "gnss_off_s", "gnss_on_s", "return_s", "landed_s")},
         "events": tl.events,
