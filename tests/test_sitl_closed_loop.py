@@ -52,3 +52,5 @@ def test_missing_bundle_is_a_clear_error(tmp_path):
 def test_outputs_without_a_sitl_setup_are_refused():
     with pytest.raises(SitlError, match="px4 with output gps_input"):
         SitlOptions(autopilot="px4", output="gps_input")
+    with pytest.raises(ValueError, match="no spoof for px4"):
+        SitlOptions(autopilot="px4", spoof_m=50.0)
