@@ -109,12 +109,6 @@ class SurveyArea:
 
 GEOREF_MAX_FIT_AGE_S = 5.0  # a GNSS fit at most this old is what a registration is compared with (gis.align.georef) and refines instead of a straying chain
 SCALE_CHECK_EVERY_S = 1.0  # the barometer checks the map under the camera this often between registrations
-#: after a SLAM jump past 3× the alignment's σ (Globalizer.unanchored), no fix for this long unless an
-#: alignment re-anchors the track sooner: SLAM re-converges over the next frames (relocalisations, jumps
-#: of 3-5 m within seconds) and the fixes meanwhile were up to 14 m off; ArduPilot's EKF fused them
-#: (their σ said so, but velocity and position innovations came in bursts) and failsafed 120 s into a
-#: `terraslam sitl` denial. After it the fixes go out with the jump in their σ.
-UNANCHORED_HOLD_S = 3.0
 RETRY_FRAMES = 10  # frames before fine-tuning tries again when the map had too few points
 MAX_EVENTS = 10_000  # alignment timeline entries kept (~200 per 10 min of flight: days of service)
 
@@ -143,7 +137,6 @@ class Localizer:
         self.gnss_check = GnssConsistency()
         self.speed_check = SlamSpeedCheck()
         self._unanchored = False  # the Globalizer's ``unanchored`` after the previous frame (_after_jump: its onset)
-        self._unanchored_since_s: float | None = None  # when it became unanchored (UNANCHORED_HOLD_S)
         self.alignment: Alignment | None = None
         # (t_s, text): alignment timeline, the newest MAX_EVENTS (a service runs for hours)
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=MAX_EVENTS)
@@ -284,8 +277,6 @@ class Localizer:
         self.globalizer.hold_jumps(pose.t_s, not item.gnss_trusted)
         fix = None if self.speed_check.suspect else self.globalizer.fix(pose)
         self._after_jump(pose.t_s)
-        if fix is not None and self._unanchored and pose.t_s - self._unanchored_since_s < UNANCHORED_HOLD_S:
-            fix = None
         fix = self.denial_floor.apply(item.gnss_trusted, pose, alignment, fix)
         fix = self._walk_floor(item.gnss_trusted, pose, fix)
         return FrameRecord(pose.seq, pose.t_s, pose, fix, alignment.source if alignment else None, time.monotonic())
@@ -529,10 +520,9 @@ class Localizer:
         innovation by its size, and past the gate (5 m) the check took GNSS for spoofed 2 s
         later (same flight, 184.3 s). A spoofer would have to start within the seconds between a
         SLAM jump and the next fit; the bridge's own GNSS/vision test still runs, with the jump
-        in the fix's σ. (4) No fix for UNANCHORED_HOLD_S (``process``)."""
+        in the fix's σ."""
         unanchored = self.globalizer.unanchored
         if unanchored and not self._unanchored:
-            self._unanchored_since_s = t_s
             self.bootstrap.clear()
             self._note((t_s, f"SLAM track jumped {self.globalizer.unanchoring_jump_m:.2f} m, beyond 3× the alignment's σ: "
                              f"GNSS pairs from before it dropped, GNSS not judged by vision until a new alignment"))
