@@ -76,7 +76,8 @@ def sitl(
         fail(str(e), code=1)
     s, a = summary["sitl"], summary["after_takeover"]
     h = a.get("horizontal_error_m") or {}
-    typer.echo(f"{autopilot} ({s['output']}): GNSS off at {s['timeline']['gnss_off_s']} s, takeover after "
+    what = f"GNSS spoofed {spoof:+g} m" if spoof else "GNSS off"
+    typer.echo(f"{autopilot} ({s['output']}): {what} at {s['timeline']['gnss_off_s']} s, takeover after "
                f"{s['takeover_after_gnss_off_s']} s, fixes on {summary['fix_ratio_after_takeover']} of frames after it")
     typer.echo(f"  our fixes (horizontal, after takeover): mean {h.get('mean')} m, max {h.get('max')} m; "
                f"beyond 3σ: {a.get('integrity_violation_ratio')}")
