@@ -13,6 +13,7 @@ from companion.sitl.flight import SitlOptions, run_sitl
 
 pytestmark = pytest.mark.sitl
 MAX_MEAN_ERROR_M = {"ardupilot": 1.5, "px4": 2.0}  # the autopilot's own horizontal error over the denial
+MAX_VELOCITY_BEYOND_3SIGMA = {"ardupilot": 0.05, "px4": 0.10}  # fixes whose velocity error is beyond 3× its claim
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,9 @@ def test_closed_loop_gnss_off_our_fixes_carry_the_autopilot(bundle, autopilot, t
     assert s["after_takeover"]["integrity_violation_ratio"] <= 0.01
     # the velocity the autopilot fuses is covered by the speed accuracy we claim (a 10-Hz fix
     # difference claimed 0.2 m/s with 80 % beyond 3σ, and ArduPilot's EKF variance failsafe landed it)
-    assert s["velocity_after_takeover"]["beyond_3sigma_ratio"] <= 0.05, s["velocity_after_takeover"]
+    # (PX4 SIH flies sharper corners: 1.3-4.7 % beyond in four flights, against ArduPilot's 0-1 %;
+    # PX4 does not fuse it with EKF2_EV_CTRL 1, ArduPilot does)
+    assert s["velocity_after_takeover"]["beyond_3sigma_ratio"] <= MAX_VELOCITY_BEYOND_3SIGMA[autopilot], s["velocity_after_takeover"]
     denial = sitl["autopilot_error_in_denial_m"]  # its own estimate vs truth
     # PX4's estimate stays 1.1-1.65 m from truth (mean) while our fixes are 0.3-0.5 m: a gap in how
     # EKF2 takes our ODOMETRY that is not understood yet (docs/AUTOPILOTS.md); ArduPilot: 0.5-1.0 m
