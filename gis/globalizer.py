@@ -170,17 +170,17 @@ class Globalizer:
             if not self._unanchored and now_m > UNANCHOR_SIGMAS * math.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1]):
                 self._set_hold(pose.t_s, self._hold_jumps, True)
                 self._unanchoring_jump_m = now_m
+            anchored = not self._unanchored
+            v_ned, speed_acc = self._track_velocity(pose.t_s, p, (pose.reset_counter, pose.map_id), R_ned_ecef)
         cov_ned = cov_ned + jump_m ** 2 * np.eye(3)
         x, y, z, w = Rotation.from_matrix(R_ned_body).as_quat()
-        with self._lock:
-            v_ned, speed_acc = self._track_velocity(pose.t_s, p, (pose.reset_counter, pose.map_id), R_ned_ecef)
         return GlobalFix(
             t_s=pose.t_s, seq=pose.seq, p_ecef_m=p, lat_deg=lat, lon_deg=lon, h_ellipsoid_m=h,
             h_msl_m=float(ellipsoid_to_msl(lat, lon, h)), cov_ned_m2=cov_ned,
             h_acc_m=float(np.sqrt(np.linalg.eigvalsh(cov_ned[:2, :2])[-1])), v_acc_m=float(np.sqrt(cov_ned[2, 2])),
             source=a.source, v_ned_mps=v_ned, speed_acc_mps=speed_acc,
             yaw_deg=float(np.degrees(np.arctan2(R_ned_body[1, 0], R_ned_body[0, 0])) % 360.0),
-            q_ned_body=np.array([w, x, y, z]), reset_counter=pose.reset_counter, anchored=not self._unanchored,
+            q_ned_body=np.array([w, x, y, z]), reset_counter=pose.reset_counter, anchored=anchored,
         )
 
     def _cov_ned(self, p_ecef: np.ndarray, a: Alignment, cc, R_ned_ecef: np.ndarray) -> np.ndarray:

@@ -406,8 +406,9 @@ class Bridge:
         interval_us = lambda hz: 1e6 / hz  # noqa: E731
         streams = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self.cfg.gnss_stream_hz,
                    mavlink.MAVLINK_MSG_ID_GPS2_RAW: self.cfg.gnss_stream_hz,
-                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
-                   mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0}  # the autopilot's estimate (status, flight reports)
+                   mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0}
+        if self.cfg.estimate_stream_hz > 0:  # the autopilot's estimate, for flight reports only
+            streams[mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT] = self.cfg.estimate_stream_hz
         if self.cfg.autopilot == "ardupilot":
             streams[mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT] = 2.0
             streams[mavlink.MAVLINK_MSG_ID_SCALED_PRESSURE] = 5.0   # the barometer

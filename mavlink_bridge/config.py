@@ -33,6 +33,7 @@ class MavlinkConfig(BaseModel):
     agp_id: int = Field(1, ge=0, le=255, description="PX4 GLOBAL_POSITION_SENSOR id (= EKF2_AGP0_ID)")
     heartbeat_hz: float = Field(1.0, gt=0, le=10, description="our HEARTBEAT rate")
     gnss_stream_hz: float = Field(5.0, gt=0, le=50, description="GPS_RAW_INT/GPS2_RAW rate requested with MAV_CMD_SET_MESSAGE_INTERVAL")
+    estimate_stream_hz: float = Field(0.0, ge=0, le=50, description="GLOBAL_POSITION_INT (the autopilot's own estimate, Bridge.autopilot_estimate) rate requested; 0: not requested (`terraslam sitl` asks 10 for its report)")
     link_timeout_s: float = Field(3.0, gt=0, description="no autopilot HEARTBEAT for this long = link down (streams are re-requested when it returns)")
     origin_resend_s: float = Field(2.0, gt=0, description="SET_GPS_GLOBAL_ORIGIN resend period until GPS_GLOBAL_ORIGIN comes back")
     switch_ekf_source: bool = Field(True, description="on takeover/hand-back switch the autopilot's source: ArduPilot GPS_PRIMARY (gps_input) or MAV_CMD_SET_EKF_SOURCE_SET (odometry/VPE); PX4 EKF2_GPS_CTRL")

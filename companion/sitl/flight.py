@@ -151,7 +151,7 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         mav_cfg = cfg.mavlink.model_copy(update={
             "connect": sitl.bridge_url, "autopilot": opts.autopilot, "output": opts.out, "gps_id": 1,
             "target_system": sitl.system_id, "source_system": sitl.system_id, "rate_hz": max(opts.fps, 1.0),
-            "gnss_delay_s": sitl_bundle.GNSS_DELAY_S[opts.autopilot]})
+            "gnss_delay_s": sitl_bundle.GNSS_DELAY_S[opts.autopilot], "estimate_stream_hz": 10.0})
         bridge = Bridge(mav_cfg, cfg.switching, clock=truth.clock).start()
         # ready to fly on GNSS: the receiver trusted and the EKF's absolute position, as the autopilot
         # tells the bridge (EKF_STATUS_REPORT / ESTIMATOR_STATUS; MAVSDK's health needs SYS_STATUS
@@ -170,8 +170,10 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
         tl.mission_start_s = truth.clock()
         tl.add(tl.mission_start_s, f"mission started ({len(route_deg)} waypoints, {opts.laps:g} laps of {opts.size_m:g} m at {opts.altitude_m:g} m)")
         gnss_name, gnss_off, gnss_on = sitl_bundle.GNSS_PARAM[opts.autopilot]
+        set_gnss = vehicle.set_param
         if opts.spoof_m:  # the receiver keeps its fix but moves: "off" is the offset, "on" none
             gnss_name, gnss_off, gnss_on = sitl_bundle.SPOOF_PARAM[opts.autopilot], opts.spoof_m / sitl_bundle.M_PER_DEG_LAT, 0.0
+            set_gnss = vehicle.set_param_float
         vehicle.wait("cruising on the route", lambda: _cruising(truth), 60.0 / opts.speed)
         tl.camera_on_s = t0 = truth.clock()
         tl.add(t0, "camera on: cruising on the route")
@@ -182,14 +184,13 @@ def run_sitl(cfg: AppConfig, sitl_dir: Path | None, out_dir: Path, opts: SitlOpt
             now = truth.clock()
             # ---- GNSS off / on with the SITL's own command, at their SITL times
             if tl.gnss_off_s is None and now >= t0 + opts.gnss_off_after_s:
-                set_param = vehicle.set_param_float if opts.spoof_m else vehicle.set_param
-                set_param(gnss_name, gnss_off)
+                set_gnss(gnss_name, gnss_off)
                 tl.gnss_off_s = truth.clock()
                 tl.add(tl.gnss_off_s, f"GNSS spoofed {opts.spoof_m:+g} m north ({gnss_name}={gnss_off:.7f})" if opts.spoof_m
                        else f"GNSS off ({gnss_name}={gnss_off})")
             if (tl.gnss_off_s is not None and tl.gnss_on_s is None and opts.gnss_off_for_s is not None
                     and now >= tl.gnss_off_s + opts.gnss_off_for_s):
-                (vehicle.set_param_float if opts.spoof_m else vehicle.set_param)(gnss_name, gnss_on)
+                set_gnss(gnss_name, gnss_on)
                 tl.gnss_on_s = truth.clock()
                 tl.add(tl.gnss_on_s, f"GNSS on ({gnss_name}={gnss_on})")
             # ---- the end: time's up, or landed after the mission
